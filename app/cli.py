@@ -1,0 +1,234 @@
+"""The command line: ``elastoid`` (the window), ``identify``, ``simulate`` and
+the rig commands. Stable surface described in docs/cli.md."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+from app.core.errors import Cancelled, ElastoidError
+
+BASELINE_EFFECTS: tuple[str, ...] = ()
+
+
+def _floats(text: str, n: int | None = None, what: str = "value") -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what}: expected comma-separated numbers, got {text!r}") from None
+    if n is not None and len(vals) != n:
+        raise argparse.ArgumentTypeError(f"{what}: expected {n} numbers, got {text!r}")
+    return vals
+
+
+def _moduli(text: str) -> dict:
+    out = {}
+    for part in text.split(","):
+        if "=" not in part:
+            raise argparse.ArgumentTypeError(f"--moduli: expected NAME=kPa pairs like B=18,A=63, got {text!r}")
+        k, v = part.split("=", 1)
+        out[k.strip()] = float(v)
+    return out
+
+
+class TerminalProgress:
+    """One status line on stderr, redrawn at most 10 times a second."""
+
+    def __init__(self, enabled: bool, n_starts: int):
+        self.enabled = enabled and sys.stderr.isatty()
+        self.n_starts, self._last = n_starts, 0.0
+        self.best = None
+
+    def message(self, text: str) -> None:
+        if self.enabled:
+            sys.stderr.write(f"\r\033[K{text}")
+            sys.stderr.flush()
+
+    def __call__(self, rep) -> None:
+        if self.best is None or rep.cost["total"] < self.best:
+            self.best = rep.cost["total"]
+        now = time.monotonic()
+        if now - self._last < 0.1:
+            return
+        self._last = now
+        width = 20
+        done = int(width * (rep.start + min(rep.evaluation / 120, 1.0)) / self.n_starts)
+        params = " ".join(f"{k[2:-4]}={v:.1f}" for k, v in rep.parameters.items())
+        self.message(f"[{'#' * done}{'.' * (width - done)}] start {rep.start + 1}/{self.n_starts} "
+                     f"eval {rep.evaluation:3d}  {params} kPa  NMI {rep.cost['nmi']:.4f}  "
+                     f"F_rms {rep.cost['force_rms_N']:.3f} N")
+
+    def done(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\r\033[K")
+            sys.stderr.flush()
+
+
+def _write_json(dest: str, payload: dict) -> None:
+    text = json.dumps(payload, indent=2)
+    if dest == "-":
+        sys.stdout.write(text + "\n")
+    else:
+        Path(dest).write_text(text + "\n", encoding="utf-8")
+
+
+def _check_effects(effects: list[str]) -> None:
+    from app.core.effects import EFFECT_IDS, available
+
+    for e in effects:
+        if e not in EFFECT_IDS:
+            raise ElastoidError(f"--effects: unknown effect {e!r}; the ids are {', '.join(EFFECT_IDS)}")
+        if e not in available():
+            raise ElastoidError(f"--effects: the effect {e!r} is not implemented in this version "
+                                f"(available: {', '.join(available()) or 'none beyond the baseline'})")
+
+
+def cmd_identify(args) -> int:
+    from app.core.experiment import read_experiment
+    from app.core.identify import Problem, identify
+    from app.core.mesh import MeshSettings
+
+    effects = [e for e in (args.effects or "").split(",") if e]
+    _check_effects(effects)
+    exp = read_experiment(args.experiment)
+    starts = _floats(args.starts, what="--starts")
+    bar = TerminalProgress(not args.quiet, len(starts))
+    settings = MeshSettings(edge_mm=args.mesh_edge_mm, probe_edge_mm=args.probe_edge_mm)
+    frames = [int(x) for x in args.frames.split(",")] if args.frames else None
+    roi = [int(x) for x in _floats(args.roi, 4, "--roi")] if args.roi else None
+    problem = Problem.from_experiment(exp, mesh_settings=settings, roi_px=roi, frames=frames, cost=args.cost,
+                                      nu=args.nu, progress=bar.message)
+    try:
+        result = identify(problem, starts, progress=bar)
+    finally:
+        bar.done()
+    result.effects = tuple(effects)
+    result.experiment = str(args.experiment)
+    payload = result.to_json_dict()
+    ref = exp.reference_moduli_kPa(args.nu)
+    if args.json:
+        _write_json(args.json, payload)
+    if args.json != "-":
+        print(f"{exp.name}: {result.evaluations} evaluations in {result.seconds:.1f} s, cost {args.cost}")
+        for name, val in result.parameters.items():
+            region = name[2:-4]
+            extra = f"   (reference {ref[region]:.1f} kPa)" if region in ref else ""
+            print(f"  {name} = {val:8.2f}{extra}")
+        for k, v in result.ratios().items():
+            print(f"  ratio {k} = {v:.3f}")
+        print(f"  NMI {result.cost['nmi']:.4f}, force RMS misfit {result.cost['force_rms_N']:.4f} N")
+        for line in result.identifiability.lines():
+            print(f"  {line}")
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    from app.core.geometry import Region
+    from app.core.mesh import MeshSettings
+    from app.core.simulate import SyntheticSpec, simulate_experiment
+
+    size = tuple(_floats(args.size_mm, 3, "--size-mm"))
+    regions = [Region("B", "background")]
+    moduli = _moduli(args.moduli)
+    if args.inclusion.lower() != "none":
+        kind, _, nums = args.inclusion.partition(":")
+        vals = _floats(nums, what="--inclusion")
+        if kind == "sphere" and len(vals) == 4:
+            regions.append(Region("A", "sphere", center_mm=tuple(vals[:3]), radius_mm=vals[3]))
+        elif kind == "box" and len(vals) == 6:
+            regions.append(Region("A", "box", center_mm=tuple(vals[:3]), size_mm=tuple(vals[3:])))
+        else:
+            raise ElastoidError("--inclusion: expected sphere:cx,cy,cz,r or box:cx,cy,cz,sx,sy,sz or none")
+    names = [r.name for r in regions]
+    moduli = {k: v for k, v in moduli.items() if k in names}
+    missing = [n for n in names if n not in moduli]
+    if missing:
+        raise ElastoidError(f"--moduli: no modulus for region(s) {', '.join(missing)}")
+    spec = SyntheticSpec(size_mm=size, regions=tuple(regions), moduli_kPa=moduli, depth_mm=args.depth_mm,
+                         face_mm=tuple(_floats(args.face_mm, 2, "--face-mm")),
+                         frames_at_mm=tuple(_floats(args.frames_at, what="--frames-at")),
+                         force_noise_N=args.noise_N, seed=args.seed, hold_s=args.hold_s, unload=args.unload,
+                         image_shape=(args.rows, args.cols),
+                         truth_mesh=MeshSettings().with_scale(args.truth_mesh_scale))
+    say = (lambda s: print(s, file=sys.stderr)) if not args.quiet else None
+    out = simulate_experiment(args.output, spec, progress=say, overwrite=args.overwrite)
+    print(out)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="elastoid", description="Identify soft-tissue stiffness from robotic "
+                                "ultrasound indentation. Without a command, opens the desktop application.")
+    from app import __version__
+
+    p.add_argument("--version", action="version", version=f"elastoid {__version__}")
+    sub = p.add_subparsers(dest="command")
+
+    ip = sub.add_parser("identify", help="fit the model's free parameters to an experiment")
+    ip.add_argument("experiment", type=Path)
+    ip.add_argument("--effects", default="", help="physical effects added to the baseline (ids, comma-separated)")
+    ip.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
+    ip.add_argument("--cost", choices=("joint", "nmi"), default="joint",
+                    help="joint: -NMI plus the force misfit (default); nmi: the paper's image-only cost")
+    ip.add_argument("--frames", help="frame indices, the first is the source (default: 0 and every later frame)")
+    ip.add_argument("--roi", help="col0,row0,col1,row1 in pixels (default: the experiment's)")
+    ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")
+    ip.add_argument("--nu", type=float, default=0.49, help="Poisson's ratio (default 0.49)")
+    ip.add_argument("--mesh-edge-mm", type=float, default=10.0)
+    ip.add_argument("--probe-edge-mm", type=float, default=2.5)
+    ip.add_argument("--quiet", action="store_true", help="no progress line")
+    ip.set_defaults(func=cmd_identify)
+
+    sp = sub.add_parser("simulate", help="write a synthetic experiment folder (with truth.toml)")
+    sp.add_argument("output", type=Path)
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--size-mm", default="90,90,96")
+    sp.add_argument("--inclusion", default="sphere:45,45,66,15",
+                    help="sphere:cx,cy,cz,r | box:cx,cy,cz,sx,sy,sz | none (region A)")
+    sp.add_argument("--moduli", default="B=18,A=63", help="kPa per region, e.g. B=18,A=63")
+    sp.add_argument("--face-mm", default="40,10")
+    sp.add_argument("--depth-mm", type=float, default=14.8)
+    sp.add_argument("--frames-at", default="0,7.4,14.8", help="probe travel of each frame, mm")
+    sp.add_argument("--hold-s", type=float, default=0.0)
+    sp.add_argument("--unload", action="store_true")
+    sp.add_argument("--noise-N", type=float, default=0.02)
+    sp.add_argument("--rows", type=int, default=256)
+    sp.add_argument("--cols", type=int, default=200)
+    sp.add_argument("--truth-mesh-scale", type=float, default=0.7, help="truth mesh size relative to the default")
+    sp.add_argument("--overwrite", action="store_true")
+    sp.add_argument("--quiet", action="store_true")
+    sp.set_defaults(func=cmd_simulate)
+
+    try:
+        from app.devices.cli import add_acquire_parser, add_rig_parser
+    except ImportError:
+        pass
+    else:
+        add_rig_parser(sub)
+        add_acquire_parser(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        from app.gui import main as gui_main
+
+        return gui_main([])
+    try:
+        return int(args.func(args) or 0)
+    except ElastoidError as exc:
+        print(f"elastoid: {exc}", file=sys.stderr)
+        return 2
+    except (Cancelled, KeyboardInterrupt):
+        print("elastoid: stopped", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

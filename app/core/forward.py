@@ -1,0 +1,325 @@
+"""The forward model: displacement field and probe force for given moduli.
+
+Boundary conditions (the paper's): bottom face bonded to the table, probe face
+bonded and pushed down by the probe travel d. Linear elasticity makes the
+solution proportional to d, so everything is computed for d = 1 mm and scaled.
+
+Online evaluations go through a reduced basis (:class:`ReducedModel`): one
+factorization at a reference point, then back-substitutions on preconditioned
+residuals enrich the basis until the Galerkin residual is below tolerance over
+the whole parameter range. The residual is evaluated exactly (through a small
+QR factor), so an evaluation outside the trained range enriches itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from app.core.fem import AffineOperator, P2Space, assemble, coefficients, interpolation_matrix, p2_space
+from app.core.mesh import TetMesh
+from app.core.solver import Factorized
+
+MN_TO_N = 1e-3  # K u is in mN with kPa and mm
+
+
+@dataclass(frozen=True)
+class Boundary:
+    bottom: str = "bonded"  # "bonded" | "sliding"
+    probe: str = "bonded"  # "bonded" | "slip"
+
+
+@dataclass
+class FEModel:
+    """Mesh + P2 space + assembled operator + boundary partition."""
+
+    space: P2Space
+    op: AffineOperator
+    boundary: Boundary
+    free: np.ndarray  # indices of free dofs
+    fixed: np.ndarray  # indices of constrained dofs
+    lift: np.ndarray  # (n_fixed,) prescribed value per mm of probe travel
+    probe_z: np.ndarray  # (n_fixed,) 1 on the probe's z dofs
+    _pos_ff: np.ndarray = field(repr=False, default=None)
+    _ff_pattern: tuple = field(repr=False, default=None)
+
+    @property
+    def n_regions(self) -> int:
+        return len(self.space.mesh.region_names)
+
+    def term_blocks(self, coeffs: dict):
+        """(A_ff, b_f, h, c) for K = sum coeffs K_key: A_ff u_f = b_f with u_c = lift,
+        force in mN per mm = -(h . u_f + c)."""
+        vals = self.op.values(coeffs)
+        K = sp.csr_matrix((vals, self.op.indices, self.op.indptr), shape=self.op.shape)
+        A = sp.csr_matrix((vals[self._pos_ff], *self._ff_pattern), shape=(len(self.free), len(self.free)))
+        Kfc = K[self.free][:, self.fixed]
+        Kcf_s = K[self.fixed][:, self.free].T @ self.probe_z
+        b = -(Kfc @ self.lift)
+        c = float(self.probe_z @ (K[self.fixed][:, self.fixed] @ self.lift))
+        return A, b, Kcf_s, c
+
+    def solve(self, youngs_kPa, nu: float = 0.49):
+        """Full-order solve for d = 1 mm: (u (n_dofs,), force N per mm)."""
+        A, b, h, c = self.term_blocks(coefficients(youngs_kPa, nu))
+        f = Factorized(A)
+        try:
+            uf = f.solve(b)
+        finally:
+            f.free()
+        u = np.zeros(self.space.n_dofs)
+        u[self.free] = uf
+        u[self.fixed] = self.lift
+        return u, -(h @ uf + c) * MN_TO_N
+
+
+def build_model(mesh: TetMesh, boundary: Boundary = Boundary(), op: AffineOperator | None = None) -> FEModel:
+    """Assemble (unless ``op`` is given) and partition the dofs for ``boundary``."""
+    space = op.space if op is not None else p2_space(mesh)
+    op = op if op is not None else assemble(space)
+    pts = space.points_mm
+    n = space.n_nodes
+    fixed = np.zeros((n, 3), bool)
+    lift = np.zeros((n, 3))
+    bottom = pts[:, 2] < 1e-6
+    probe = mesh.probe_nodes(pts)
+    if boundary.bottom == "bonded":
+        fixed[bottom] = True
+    else:
+        fixed[bottom, 2] = True
+    if boundary.probe == "bonded":
+        fixed[probe] = True
+    else:
+        fixed[probe, 2] = True
+    lift[probe, 2] = -1.0
+    if boundary.bottom != "bonded" and boundary.probe != "bonded":
+        # remove rigid in-plane motions: pin x, y of the bottom node nearest the
+        # centre and y of the bottom node nearest the middle of the x = sx edge
+        sx, sy, _ = mesh.size_mm
+        ib = np.flatnonzero(bottom)
+        c0 = ib[np.argmin(np.linalg.norm(pts[ib, :2] - [sx / 2, sy / 2], axis=1))]
+        c1 = ib[np.argmin(np.linalg.norm(pts[ib, :2] - [sx, sy / 2], axis=1))]
+        fixed[c0, :2] = True
+        fixed[c1, 1] = True
+    fixed_f = fixed.ravel()
+    free_idx = np.flatnonzero(~fixed_f)
+    fixed_idx = np.flatnonzero(fixed_f)
+    probe_z = np.zeros((n, 3))
+    probe_z[probe, 2] = 1.0
+    # positions of the free-free block inside the shared CSR pattern
+    pattern = sp.csr_matrix((np.arange(1, len(op.indices) + 1, dtype=float), op.indices, op.indptr), shape=op.shape)
+    sub = pattern[free_idx][:, free_idx].tocsr()
+    sub.sort_indices()
+    pos = sub.data.astype(np.int64) - 1
+    model = FEModel(space, op, boundary, free_idx, fixed_idx, lift.ravel()[fixed_idx], probe_z.ravel()[fixed_idx])
+    model._pos_ff = pos
+    model._ff_pattern = (sub.indices.copy(), sub.indptr.copy())
+    return model
+
+
+# ---------------------------------------------------------------------------
+# reduced basis
+# ---------------------------------------------------------------------------
+
+
+class ReducedModel:
+    """Galerkin reduced model over affine terms K_q (one per region, or per region
+    and Lame kind when Poisson's ratio is free).
+
+    ``terms`` lists coefficient dicts of the operator; the parameters are the
+    term weights theta_q (e.g. Young's moduli in kPa). The residual of the full
+    system, r = sum_q theta_q (b_q - A_q V a), is kept as an orthonormal basis of
+    its possible directions with a small triangular factor, so its norm costs
+    microseconds and stays accurate.
+    """
+
+    def __init__(self, model: FEModel, terms: list[dict], tol: float = 1e-7, max_basis: int = 80):
+        self.model = model
+        self.terms = terms
+        self.tol = tol
+        self.max_basis = max_basis
+        blocks = [model.term_blocks(t) for t in terms]
+        self.A = [b[0] for b in blocks]
+        self.b = [b[1] for b in blocks]
+        self.h = [b[2] for b in blocks]
+        self.c = np.array([b[3] for b in blocks])
+        n, Q = len(model.free), len(terms)
+        self._V = np.zeros((n, max_basis))
+        self._AV = np.zeros((Q, n, max_basis))
+        self._Qw = np.zeros((n, Q * (max_basis + 1)))
+        self._Rw = np.zeros((Q * (max_basis + 1), Q * (max_basis + 1)))
+        self._nw = 0
+        self.k = 0
+        for q in range(Q):
+            self._push_residual_column(self.b[q])
+        self._prec = None
+        self.n_full_solves = 0
+        self.n_back_solves = 0
+        self._update_reduced()
+
+    @property
+    def V(self) -> np.ndarray:
+        return self._V[:, : self.k]
+
+    # --- offline ------------------------------------------------------------
+    def _push_residual_column(self, w: np.ndarray) -> None:
+        j = self._nw
+        Qw = self._Qw[:, :j]
+        r1 = Qw.T @ w
+        w = w - Qw @ r1
+        r2 = Qw.T @ w
+        w = w - Qw @ r2
+        nrm = np.linalg.norm(w)
+        self._Rw[:j, j] = r1 + r2
+        self._Rw[j, j] = nrm
+        self._Qw[:, j] = w / nrm if nrm > 0 else 0.0
+        self._nw += 1
+
+    def _matrix(self, theta):
+        A = self.A[0] * theta[0]
+        for q in range(1, len(theta)):
+            A = A + self.A[q] * theta[q]
+        return A
+
+    def _rhs(self, theta):
+        return sum(t * b for t, b in zip(theta, self.b))
+
+    def _ensure_prec(self, theta):
+        if self._prec is None:
+            self._prec = Factorized(self._matrix(theta))
+            self.n_full_solves += 1
+
+    def _add(self, v) -> bool:
+        V = self.V
+        for _ in range(2):  # twice is enough (Kahan)
+            v = v - V @ (V.T @ v)
+        nv = np.linalg.norm(v)
+        if nv == 0 or self.k >= self.max_basis:
+            return False
+        v = v / nv
+        self._V[:, self.k] = v
+        for q, A in enumerate(self.A):
+            self._AV[q, :, self.k] = A @ v
+            self._push_residual_column(self._AV[q, :, self.k])
+        self.k += 1
+        self._update_reduced()
+        return True
+
+    def _update_reduced(self):
+        k, V = self.k, self.V
+        self.Ar = np.einsum("ni,qnj->qij", V, self._AV[:, :, :k], optimize=True) if k else np.zeros((len(self.A), 0, 0))
+        self.br = np.stack([V.T @ b for b in self.b])
+        self.hr = np.stack([V.T @ h for h in self.h])
+        self._R = self._Rw[: self._nw, : self._nw]
+
+    def train(self, thetas: np.ndarray, progress=None):
+        """Greedy enrichment until the relative residual is below ``tol`` at every
+        training parameter (rows of ``thetas``)."""
+        thetas = np.atleast_2d(np.asarray(thetas, float))
+        self._ensure_prec(np.exp(np.log(thetas).mean(axis=0)))
+        if self.k == 0:
+            self._add(self._prec.solve(self._rhs(np.exp(np.log(thetas).mean(axis=0)))))
+            self.n_back_solves += 1
+        while self.k < self.max_basis:
+            res = np.array([self.residual(t)[1] for t in thetas])
+            worst = int(np.argmax(res))
+            if progress:
+                progress(self.k, float(res[worst]))
+            if res[worst] < self.tol:
+                break
+            if not self._enrich(thetas[worst]):
+                break
+
+    def _enrich(self, theta) -> bool:
+        a = self.coords(theta, check=False)
+        k = self.k
+        r = sum(t * (b - AV[:, :k] @ a) for t, b, AV in zip(theta, self.b, self._AV))
+        self.n_back_solves += 1
+        return self._add(self._prec.solve(r))
+
+    # --- online -------------------------------------------------------------
+    def _solve_reduced(self, theta):
+        return np.linalg.solve(np.tensordot(theta, self.Ar, axes=1), theta @ self.br)
+
+    def coords(self, theta, check: bool = True) -> np.ndarray:
+        """Reduced coordinates a with u_f = V a (per mm of probe travel)."""
+        theta = np.asarray(theta, float)
+        a = self._solve_reduced(theta)
+        if check:
+            while self.residual(theta, a)[1] >= self.tol and self.k < self.max_basis:
+                self._ensure_prec(theta)
+                if not self._enrich(theta):
+                    break
+                a = self._solve_reduced(theta)
+        return a
+
+    def residual(self, theta, a=None):
+        """(absolute, relative) Euclidean residual of the full system at theta."""
+        theta = np.asarray(theta, float)
+        if a is None:
+            a = self._solve_reduced(theta)
+        Q = len(theta)
+        # column order: b_1..b_Q, then A_1 v_1..A_Q v_1, A_1 v_2, ...
+        cvec = np.concatenate([theta, -np.outer(a, theta).ravel()])
+        r = np.linalg.norm(self._R @ cvec)
+        bn = np.linalg.norm(self._R[:Q, :Q] @ theta)
+        return r, r / max(bn, 1e-300)
+
+    def force_N_per_mm(self, theta, a=None) -> float:
+        theta = np.asarray(theta, float)
+        if a is None:
+            a = self.coords(theta)
+        return float(-(theta @ (self.hr @ a) + theta @ self.c) * MN_TO_N)
+
+    def full_field(self, a) -> np.ndarray:
+        """Full displacement vector (n_dofs,) per mm for reduced coordinates a."""
+        m = self.model
+        u = np.zeros(m.space.n_dofs)
+        u[m.free] = self.V @ a
+        u[m.fixed] = m.lift
+        return u
+
+    def point_operator(self, points_mm: np.ndarray):
+        """Displacements at fixed points, kept in step with the basis."""
+        P = interpolation_matrix(self.model.space, points_mm)
+        return _PointOperator(self, P[:, self.model.free], P[:, self.model.fixed] @ self.model.lift)
+
+
+class _PointOperator:
+    def __init__(self, rm: ReducedModel, Pf, lift_part):
+        self.rm, self.Pf, self.lift_part = rm, Pf, lift_part
+        self._n = -1
+        self.B = None
+
+    def values(self, a: np.ndarray) -> np.ndarray:
+        """Displacement (n, 3) mm per mm of probe travel."""
+        if self._n != self.rm.k:
+            self.B = self.Pf @ self.rm.V
+            self._n = self.rm.k
+        return (self.B @ a + self.lift_part).reshape(-1, 3)
+
+
+def region_terms(n_regions: int, nu: float) -> list[dict]:
+    """One affine term per region with Poisson's ratio fixed: theta_r = E_r (kPa)."""
+    out = []
+    for r in range(n_regions):
+        c = coefficients([1.0], nu)
+        out.append({(r, "mu"): c[(0, "mu")], (r, "lam"): c[(0, "lam")]})
+    return out
+
+
+def training_set(n_regions: int, ratio_range=(1 / 30, 30), n: int = 24, seed: int = 0) -> np.ndarray:
+    """Moduli (kPa) covering the ratio range; the first region is the unit (scale is free)."""
+    if n_regions == 1:
+        return np.ones((1, 1))
+    rng = np.random.default_rng(seed)
+    lo, hi = np.log(ratio_range)
+    if n_regions == 2:
+        r = np.exp(np.linspace(lo, hi, n))
+        return np.column_stack([np.ones(n), r])
+    logs = rng.uniform(lo, hi, size=(n, n_regions - 1))
+    corners = np.array(np.meshgrid(*[[lo, 0.0, hi]] * (n_regions - 1))).reshape(n_regions - 1, -1).T
+    logs = np.vstack([corners, logs])
+    return np.column_stack([np.ones(len(logs)), np.exp(logs)])

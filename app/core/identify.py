@@ -1,0 +1,387 @@
+"""Identification: the paper's cost (-NMI of warped source vs target frames),
+the joint cost with the force log, multi-start Nelder-Mead in log-moduli, and an
+identifiability report.
+
+Under displacement control the displacement field depends only on the ratios
+of the moduli (scaling every modulus scales the stresses, not the strains), so
+images alone cannot fix the overall level: the force can. The report makes
+this explicit.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.optimize import minimize
+from threadpoolctl import threadpool_limits
+
+from app.core.errors import Cancelled, ElastoidError
+from app.core.forward import Boundary, FEModel, ReducedModel, build_model, region_terms, training_set
+from app.core.images import default_roi, pixel_to_world
+from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
+from app.core.similarity import NMI
+from app.core.warp import TPS, FastWarp, WarpGrid
+
+PAPER_STARTS_KPA = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
+BOUNDS_KPA = (0.1, 1e4)
+CONTROL_SPACING_MM = 2.0
+DISPLACEMENT_NOISE_PX = 0.25  # stated noise model of the image term (speckle-tracking precision)
+
+
+@dataclass(frozen=True)
+class EvalReport:
+    """One cost evaluation, as reported to progress callbacks."""
+
+    start: int
+    evaluation: int
+    parameters: dict
+    cost: dict
+
+
+@dataclass
+class _FramePair:
+    source: int
+    target: int
+    d_source_mm: float
+    d_target_mm: float
+    warp: FastWarp
+    nmi: NMI
+    mask: np.ndarray  # ROI pixels whose source pre-image lies inside the source frame
+    source_image: np.ndarray
+    target_roi: np.ndarray
+
+
+def force_noise_N(force_N: np.ndarray) -> float:
+    """Robust noise estimate of a force log: MAD of second differences (trend-free)."""
+    d2 = np.diff(np.asarray(force_N, float), 2)
+    if len(d2) < 3:
+        return float("nan")
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
+
+
+class Problem:
+    """Everything an evaluation needs, built once: mesh, FE operator, reduced
+    model, warps and NMI objects for each (source, target) frame pair."""
+
+    def __init__(self, exp, mesh: TetMesh, fe: FEModel, rm: ReducedModel, *, nu: float, cost: str,
+                 frames: tuple[int, ...], roi_px, force_weight: float, bins: int):
+        if cost not in ("nmi", "joint"):
+            raise ElastoidError(f"cost must be 'nmi' or 'joint', got {cost!r}")
+        self.exp, self.mesh, self.fe, self.rm = exp, mesh, fe, rm
+        self.nu, self.cost_kind, self.force_weight, self.bins = nu, cost, force_weight, bins
+        self.region_names = mesh.region_names
+        self.parameter_names = tuple(f"E_{n}_kPa" for n in self.region_names)
+        self.frames = frames
+        log = exp.force_log
+        self.log_d = np.clip(log.displacement_mm, 0.0, None)
+        self.log_F = log.force_N
+        self.force_scale_N = max(float(np.abs(self.log_F).max()), 1e-9)
+        self.force_sigma_N = force_noise_N(self.log_F)
+        img0 = exp.image(frames[0])
+        self.image_shape = img0.shape
+        self.roi = tuple(roi_px) if roi_px is not None else default_roi(exp, img0.shape)
+        c0, r0, c1, r1 = self.roi
+        if c0 < 0 or r0 < 0 or c1 > img0.shape[1] or r1 > img0.shape[0] or c1 <= c0 or r1 <= r0:
+            raise ElastoidError(f"ROI {list(self.roi)} lies outside the {img0.shape[1]} x {img0.shape[0]} px images")
+        self._setup_control_points()
+        grid = WarpGrid(c0, r0, c1, r1)
+        self.pairs: list[_FramePair] = []
+        ref = np.ones(len(self.region_names))
+        for t in frames[1:]:
+            tgt = exp.image(t)
+            warp = FastWarp(self.tps, img0.shape, grid)
+            pair = _FramePair(frames[0], t, exp.frames[frames[0]].displacement_mm, exp.frames[t].displacement_mm,
+                              warp, None, None, img0, tgt[r0:r1, c0:c1])
+            rows, cols = warp.sample_positions(coarse=self._coarse_field(pair, self.rm.coords(ref)))
+            H, W = img0.shape
+            pair.mask = (rows >= 2) & (rows <= H - 3) & (cols >= 2) & (cols <= W - 3)
+            if pair.mask.mean() < 0.25:
+                raise ElastoidError(
+                    f"frame {t}: only {100 * pair.mask.mean():.0f}% of the ROI was imaged in the source frame; "
+                    "choose a shallower ROI")
+            pair.nmi = NMI(pair.target_roi[pair.mask], bins=bins)
+            self.pairs.append(pair)
+        self.n_evaluations = 0
+
+    # --- construction -----------------------------------------------------
+    @classmethod
+    def from_experiment(cls, exp, *, mesh: TetMesh | None = None, mesh_settings: MeshSettings = MeshSettings(),
+                        roi_px=None, frames=None, cost: str = "joint", nu: float = 0.49,
+                        boundary: Boundary = Boundary(), force_weight: float = 1.0, bins: int = 32,
+                        progress: Callable[[str], None] | None = None,
+                        cancel: threading.Event | None = None) -> "Problem":
+        """Mesh (cached), assemble, train the reduced model and prepare the frames.
+
+        ``frames``: indices, the first is the source (pre-deformation) frame; by
+        default frame 0 against every later frame with larger probe travel.
+        """
+        say = progress or (lambda s: None)
+        if frames is None:
+            d0 = exp.frames[0].displacement_mm
+            frames = (0,) + tuple(i for i, f in enumerate(exp.frames) if i > 0 and f.displacement_mm > d0 + 1e-9)
+        frames = tuple(int(i) % len(exp.frames) for i in frames)
+        if len(frames) < 2:
+            raise ElastoidError("identification needs a source frame and at least one deformed frame")
+        if mesh is None:
+            mesh = specimen_mesh(exp, mesh_settings, progress=say, cancel=cancel)
+        say("assembling the finite-element model")
+        fe = build_model(mesh, boundary)
+        if cancel is not None and cancel.is_set():
+            raise Cancelled("cancelled")
+        say("training the reduced model")
+        with threadpool_limits(limits=1, user_api="blas"):
+            rm = ReducedModel(fe, region_terms(len(mesh.region_names), nu))
+            rm.train(training_set(len(mesh.region_names)))
+        say(f"reduced model: {rm.V.shape[1]} basis vectors")
+        return cls(exp, mesh, fe, rm, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
+                   force_weight=force_weight, bins=bins)
+
+    def _setup_control_points(self):
+        """Grid of control points on the source image plane (2 mm apart, with a margin)."""
+        exp = self.exp
+        H, W = self.image_shape
+        sc, sr = exp.imaging.pixel_spacing_mm
+        step_c, step_r = CONTROL_SPACING_MM / sc, CONTROL_SPACING_MM / sr
+        cols = np.arange(-2 * step_c, W + 2 * step_c, step_c)
+        rows = np.arange(0.0, H + 2 * step_r, step_r)
+        C, R = np.meshgrid(cols, rows)
+        self.ctrl_px = np.column_stack([C.ravel(), R.ravel()])
+        d0 = exp.frames[self.frames[0]].displacement_mm
+        pts = pixel_to_world(self.ctrl_px[:, 0], self.ctrl_px[:, 1], exp, d0)
+        # keep the points inside the specimen (clamped to it): the field is not defined outside
+        size = np.asarray(exp.specimen.size_mm)
+        pts = np.clip(pts, 0.0, size)
+        self.ctrl_world = pts
+        self.tps = TPS(self.ctrl_px)
+        self._pointop = self.rm.point_operator(pts)
+        lat = np.asarray(exp.probe.lateral_axis, float)
+        self._lat, self._sc, self._sr = lat, sc, sr
+
+    # --- model pieces -----------------------------------------------------
+    def theta(self, params: dict) -> np.ndarray:
+        return np.array([params[n] for n in self.parameter_names], float)
+
+    def control_displacement_px(self, a: np.ndarray, pair: _FramePair) -> np.ndarray:
+        """delta (n_ctrl, 2) px (col, row) from the source frame to the target frame."""
+        u = self._pointop.values(a)  # per mm of travel
+        dd = pair.d_target_mm - pair.d_source_mm
+        col = dd * (u @ self._lat) / self._sc
+        row = dd * (-1.0 - u[:, 2]) / self._sr
+        return np.column_stack([col, row])
+
+    def _coarse_field(self, pair: _FramePair, a: np.ndarray) -> np.ndarray:
+        return pair.warp.forward_coarse(self.control_displacement_px(a, pair))
+
+    def model_force_N(self, params: dict, a=None) -> np.ndarray:
+        theta = self.theta(params)
+        g = self.rm.force_N_per_mm(theta, a)
+        return g * self.log_d
+
+    def warped_source(self, params: dict, target: int | None = None):
+        """(warped source ROI, target ROI, roi, mask) for a target frame index."""
+        a = self.rm.coords(self.theta(params))
+        pair = self.pairs[0] if target is None else next(p for p in self.pairs if p.target == target)
+        w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))
+        return w, pair.target_roi, self.roi, pair.mask
+
+    def evaluate(self, params: dict) -> dict:
+        """Cost parts: total, nmi (mean over frame pairs, in [1, 2]), force_rms_N."""
+        with threadpool_limits(limits=1, user_api="blas"):
+            theta = self.theta(params)
+            a = self.rm.coords(theta)
+            vals = []
+            for pair in self.pairs:
+                w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))
+                vals.append(pair.nmi(w[pair.mask]))
+            nmi = float(np.mean(vals))
+            resid = self.model_force_N(params, a) - self.log_F
+            frms = float(np.sqrt(np.mean(resid**2)))
+        self.n_evaluations += 1
+        total = -nmi
+        if self.cost_kind == "joint":
+            total += self.force_weight * (frms / self.force_scale_N) ** 2
+        return {"total": total, "nmi": nmi, "force_rms_N": frms}
+
+    def deformed_points(self, params: dict, displacement_mm: float) -> np.ndarray:
+        """Mesh vertices moved by the model at a probe travel (mm)."""
+        a = self.rm.coords(self.theta(params))
+        u = self.rm.full_field(a).reshape(-1, 3)[: self.mesh.n_nodes]
+        return self.mesh.points_mm + displacement_mm * u
+
+    # --- identifiability ----------------------------------------------------
+    def identifiability(self, params: dict) -> "Identifiability":
+        theta = self.theta(params)
+        names = self.parameter_names
+        h = 1e-4
+        base_u, base_F = self._observables(theta)
+        Su, SF = [], []
+        for r in range(len(theta)):
+            tp = theta.copy()
+            tp[r] *= math.exp(h)
+            u, F = self._observables(tp)
+            Su.append((u - base_u) / h)
+            SF.append((F - base_F) / h)
+        Su, SF = np.column_stack(Su), np.column_stack(SF)
+        sigma_F = self.force_sigma_N if np.isfinite(self.force_sigma_N) and self.force_sigma_N > 0 else 0.01
+        fisher = Su.T @ Su / DISPLACEMENT_NOISE_PX**2
+        if self.cost_kind == "joint":
+            fisher = fisher + SF.T @ SF / sigma_F**2
+        return Identifiability.from_fisher(names, fisher, Su, SF, sigma_F, self.cost_kind)
+
+    def _observables(self, theta):
+        a = self.rm.coords(theta)
+        u = np.concatenate([self.control_displacement_px(a, p).ravel() for p in self.pairs])
+        F = self.rm.force_N_per_mm(theta, a) * self.log_d
+        return u, F
+
+
+@dataclass
+class Identifiability:
+    """Sensitivities at the optimum, standard errors from a stated noise model,
+    parameter correlations and a flag per parameter."""
+
+    names: tuple
+    standard_error_rel: dict
+    correlation: np.ndarray
+    flags: dict
+    image_sensitivity_px: dict  # max displacement change (px) for a 10% change of the parameter
+    force_sensitivity_N: dict  # max force change (N) for a 10% change
+    null_directions: list
+    noise_model: str
+
+    @classmethod
+    def from_fisher(cls, names, fisher, Su, SF, sigma_F, cost_kind):
+        w, V = np.linalg.eigh(fisher)
+        tol = max(w.max(), 1e-300) * 1e-9
+        null = [V[:, i] for i in range(len(w)) if w[i] <= tol]
+        cov = np.linalg.pinv(fisher, rcond=1e-9, hermitian=True)
+        se = np.sqrt(np.clip(np.diag(cov), 0, None))
+        d = np.where(se > 0, se, 1.0)
+        corr = cov / np.outer(d, d)
+        flags = {}
+        for i, n in enumerate(names):
+            in_null = any(abs(v[i]) > 1e-3 for v in null)
+            if in_null:
+                flags[n] = "unconstrained: the data fix only ratios involving it"
+            elif se[i] > 0.25:
+                flags[n] = f"weakly constrained (+/-{100 * se[i]:.0f}%)"
+            else:
+                flags[n] = "ok"
+        ln = math.log(1.1)
+        img = {n: float(np.abs(Su[:, i]).max() * ln) for i, n in enumerate(names)}
+        frc = {n: float(np.abs(SF[:, i]).max() * ln) for i, n in enumerate(names)}
+        noise = (f"image term: independent {DISPLACEMENT_NOISE_PX} px error on each control-point displacement "
+                 f"({CONTROL_SPACING_MM:g} mm grid)")
+        if cost_kind == "joint":
+            noise += f"; force term: independent {sigma_F:.3g} N noise per sample (estimated from the log)"
+        return cls(tuple(names), {n: (float("inf") if flags[n].startswith("unconstrained") else float(se[i]))
+                                  for i, n in enumerate(names)},
+                   corr, flags, img, frc, [v.tolist() for v in null], noise)
+
+    def lines(self) -> list[str]:
+        out = [f"noise model: {self.noise_model}"]
+        for n in self.names:
+            se = self.standard_error_rel[n]
+            se_s = "undetermined" if not np.isfinite(se) else f"+/-{100 * se:.1f}%"
+            out.append(f"{n}: {se_s}; 10% change moves the image by {self.image_sensitivity_px[n]:.2f} px "
+                       f"and the force by {self.force_sensitivity_N[n]:.3f} N; {self.flags[n]}")
+        for v in self.null_directions:
+            if np.allclose(np.abs(v), abs(v[0]), atol=1e-3):
+                out.append("the images cannot tell the overall stiffness level (all moduli scaled together): "
+                           "use the joint cost with the force")
+            else:
+                out.append("unconstrained direction (log-moduli): " + ", ".join(f"{x:+.2f}" for x in v))
+        if len(self.names) > 1:
+            out.append("correlations: " + "; ".join(
+                f"{self.names[i]}~{self.names[j]} {self.correlation[i, j]:+.2f}"
+                for i in range(len(self.names)) for j in range(i + 1, len(self.names))))
+        return out
+
+    def to_dict(self) -> dict:
+        return {"standard_error_rel": {k: (None if not np.isfinite(v) else v) for k, v in self.standard_error_rel.items()},
+                "flags": self.flags, "image_sensitivity_px": self.image_sensitivity_px,
+                "force_sensitivity_N": self.force_sensitivity_N, "correlation": self.correlation.tolist(),
+                "noise_model": self.noise_model}
+
+
+@dataclass
+class Result:
+    parameters: dict
+    cost: dict
+    evaluations: int
+    seconds: float
+    history: list = field(default_factory=list)
+    starts: list = field(default_factory=list)
+    identifiability: Identifiability | None = None
+    effects: tuple = ()
+    experiment: str = ""
+
+    def ratios(self) -> dict:
+        names = list(self.parameters)
+        base = self.parameters[names[0]]
+        return {f"{n}/{names[0]}": self.parameters[n] / base for n in names[1:]}
+
+    def to_json_dict(self) -> dict:
+        return {"experiment": self.experiment, "effects": list(self.effects), "parameters": self.parameters,
+                "cost": self.cost, "evaluations": self.evaluations, "seconds": round(self.seconds, 3),
+                "starts": self.starts,
+                "identifiability": self.identifiability.to_dict() if self.identifiability else None}
+
+
+def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | None = None,
+             progress: Callable[[EvalReport], None] | None = None, cancel: threading.Event | None = None,
+             max_evaluations: int = 200, xatol: float = 2e-3, fatol: float = 1e-6) -> Result:
+    """Multi-start Nelder-Mead in log-moduli. Each start sets every free modulus to
+    the start value (the paper's starts: 10, 20, ..., 60 kPa). ``fixed`` holds
+    parameters kept at given values. Reports every evaluation to ``progress``."""
+    t0 = time.perf_counter()
+    fixed = dict(fixed or {})
+    free = [n for n in problem.parameter_names if n not in fixed]
+    if not free:
+        raise ElastoidError("every parameter is fixed: nothing to identify")
+    lo, hi = np.log(BOUNDS_KPA)
+    history: list[EvalReport] = []
+    per_start = []
+    best = None
+    total_evals = 0
+    for k, s in enumerate(starts_kPa):
+        count = [0]
+
+        def f(x, k=k):
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("identification cancelled")
+            xc = np.clip(x, lo, hi)
+            params = dict(fixed)
+            params.update({n: float(math.exp(v)) for n, v in zip(free, xc)})
+            params = {n: params[n] for n in problem.parameter_names}
+            cost = problem.evaluate(params)
+            penalty = float(np.sum((x - xc) ** 2))
+            count[0] += 1
+            rep = EvalReport(k, count[0], params, cost)
+            history.append(rep)
+            if progress:
+                progress(rep)
+            return cost["total"] + penalty
+
+        x0 = np.full(len(free), math.log(s))
+        simplex = np.vstack([x0] + [x0 + 0.3 * np.eye(len(free))[i] for i in range(len(free))])
+        res = minimize(f, x0, method="Nelder-Mead",
+                       options={"initial_simplex": simplex, "xatol": xatol, "fatol": fatol,
+                                "maxfev": max_evaluations})
+        params = dict(fixed)
+        params.update({n: float(math.exp(v)) for n, v in zip(free, np.clip(res.x, lo, hi))})
+        params = {n: params[n] for n in problem.parameter_names}
+        cost = problem.evaluate(params)
+        total_evals += count[0]
+        per_start.append({"start_kPa": s, "parameters": params, "cost": cost, "evaluations": count[0]})
+        if best is None or cost["total"] < best[1]["total"]:
+            best = (params, cost)
+    ident = problem.identifiability(best[0])
+    return Result(parameters=best[0], cost=best[1], evaluations=total_evals, seconds=time.perf_counter() - t0,
+                  history=history, starts=per_start, identifiability=ident,
+                  experiment=str(problem.exp.path or ""))

@@ -1,0 +1,314 @@
+"""Conforming tetrahedral meshes of a specimen with pytetwild.
+
+The input surface holds the specimen box, whose top face is triangulated with
+the probe outline as edges, and every region's closed surface, so region
+interfaces and the probe face are resolved by the mesh. A background sizing
+field refines the mesh under the probe. fTetWild holds the GIL for its whole
+run, so it runs in a child process that can be cancelled. Meshes are cached on
+disk by the hash of their inputs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing as mp
+import os
+import threading
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from app.core.errors import Cancelled, MeshingError
+from app.core.geometry import Region, box_surface, paint_labels
+
+MESH_VERSION = 4  # bump when meshing changes, to invalidate caches
+
+
+@dataclass(frozen=True)
+class MeshSettings:
+    """Target edge lengths in mm: ``edge_mm`` far from the probe, ``probe_edge_mm``
+    on the probe face; the size grows by ``grading`` mm per mm of distance."""
+
+    edge_mm: float = 10.0
+    probe_edge_mm: float = 2.5
+    grading: float = 0.35
+    epsilon: float = 5e-4  # fTetWild envelope, relative to the bounding box diagonal
+    region_edge_mm: float | None = None  # size on region surfaces (default: between the two)
+
+    def with_scale(self, factor: float) -> "MeshSettings":
+        """Every length multiplied by ``factor`` (< 1 refines)."""
+        r = None if self.region_edge_mm is None else self.region_edge_mm * factor
+        return MeshSettings(self.edge_mm * factor, self.probe_edge_mm * factor, self.grading, self.epsilon, r)
+
+
+@dataclass(frozen=True)
+class TetMesh:
+    """Linear tetrahedra (points mm, tets as vertex indices) with a region label per tet."""
+
+    points_mm: np.ndarray
+    tets: np.ndarray
+    labels: np.ndarray
+    region_names: tuple[str, ...]
+    size_mm: tuple[float, float, float]
+    probe_rect_mm: tuple[float, float, float, float]
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.points_mm)
+
+    @property
+    def n_tets(self) -> int:
+        return len(self.tets)
+
+    def tet_volumes_mm3(self) -> np.ndarray:
+        p = self.points_mm[self.tets]
+        return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
+
+    def top_nodes(self, tol: float = 1e-6) -> np.ndarray:
+        return np.abs(self.points_mm[:, 2] - self.size_mm[2]) < tol
+
+    def probe_nodes(self, points: np.ndarray | None = None, tol: float = 1e-6) -> np.ndarray:
+        """Mask of points on the top face inside the probe face (outline included)."""
+        p = self.points_mm if points is None else points
+        x0, x1, y0, y1 = self.probe_rect_mm
+        return (np.abs(p[:, 2] - self.size_mm[2]) < tol) & (p[:, 0] >= x0 - tol) & (p[:, 0] <= x1 + tol) \
+            & (p[:, 1] >= y0 - tol) & (p[:, 1] <= y1 + tol)
+
+
+@dataclass(frozen=True)
+class MeshQuality:
+    n_nodes: int
+    n_tets: int
+    n_probe_nodes: int
+    min_dihedral_deg: float
+    max_dihedral_deg: float
+    region_volume_mm3: dict
+    region_geometric_volume_mm3: dict
+
+    def lines(self) -> list[str]:
+        out = [f"{self.n_nodes} nodes, {self.n_tets} tetrahedra, {self.n_probe_nodes} vertices on the probe face",
+               f"dihedral angles {self.min_dihedral_deg:.1f} to {self.max_dihedral_deg:.1f} deg"]
+        for k, v in self.region_volume_mm3.items():
+            g = self.region_geometric_volume_mm3[k]
+            out.append(f"region {k}: meshed {v:.0f} mm3, geometric {g:.0f} mm3 ({100 * (v - g) / g:+.1f}%)")
+        return out
+
+
+def quality(mesh: TetMesh, regions: tuple[Region, ...]) -> MeshQuality:
+    """Counts, dihedral angle range, and each region's meshed vs geometric volume.
+
+    A region's geometric volume is what it covers after later regions paint over it.
+    """
+    vol = mesh.tet_volumes_mm3()
+    ang = dihedral_angles_deg(mesh.points_mm, mesh.tets)
+    meshed = {n: float(vol[mesh.labels == k].sum()) for k, n in enumerate(mesh.region_names)}
+    geo = {}
+    box = float(np.prod(mesh.size_mm))
+    for k, r in enumerate(regions):
+        geo[r.name] = r.volume_mm3(mesh.size_mm)
+    # the background loses what the others cover (regions assumed disjoint)
+    geo[regions[0].name] = box - sum(geo[r.name] for r in regions[1:])
+    return MeshQuality(mesh.n_nodes, mesh.n_tets, int(mesh.probe_nodes().sum()), float(ang.min()), float(ang.max()),
+                       meshed, geo)
+
+
+def dihedral_angles_deg(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """The six dihedral angles of every tetrahedron, (m, 6) degrees."""
+    p = points[tets]
+    faces = [(1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)]  # face opposite vertex i
+    normals = []
+    for i, (a, b, c) in enumerate(faces):
+        n = np.cross(p[:, b] - p[:, a], p[:, c] - p[:, a])
+        # orient outward: away from the opposite vertex
+        s = np.sign(np.einsum("ij,ij->i", n, p[:, a] - p[:, i]))
+        normals.append(n * s[:, None] / np.linalg.norm(n, axis=1, keepdims=True))
+    out = []
+    for i in range(4):
+        for j in range(i + 1, 4):
+            cos = -np.einsum("ij,ij->i", normals[i], normals[j])
+            out.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    return np.column_stack(out)
+
+
+# ---------------------------------------------------------------------------
+# input surface and sizing field
+# ---------------------------------------------------------------------------
+
+
+def _ticks(lo: float, a: float, b: float, hi: float, fine: float, coarse: float) -> np.ndarray:
+    """1-D ticks on [lo, hi] that include a and b, fine inside [a, b], coarser outside."""
+    parts = []
+    if a > lo + 1e-9:
+        parts.append(np.linspace(lo, a, max(2, int(np.ceil((a - lo) / coarse)) + 1)))
+    parts.append(np.linspace(a, b, max(2, int(np.ceil((b - a) / fine)) + 1)))
+    if hi > b + 1e-9:
+        parts.append(np.linspace(b, hi, max(2, int(np.ceil((hi - b) / coarse)) + 1)))
+    return np.unique(np.concatenate(parts))
+
+
+def input_surface(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: MeshSettings):
+    """Vertices and triangles fed to fTetWild: the box with the probe outline
+    imprinted on its top face, plus every non-background region's surface."""
+    sx, sy, sz = size_mm
+    x0, x1, y0, y1 = probe_rect_mm
+    fine, coarse = settings.probe_edge_mm, min(settings.edge_mm, 3 * settings.probe_edge_mm)
+    top = (_ticks(0, x0, x1, sx, fine, coarse), _ticks(0, y0, y1, sy, fine, coarse))
+    verts, faces = box_surface((0, 0, 0), size_mm, settings.edge_mm, top_lines=top)
+    vs, fs = [verts], [faces]
+    n = len(verts)
+    redge = settings.region_edge_mm or 0.5 * (settings.edge_mm + settings.probe_edge_mm)
+    for r in regions[1:]:
+        lo, hi = r.bounds_mm()
+        v, f = r.surface(edge_mm=min(redge, 4.0, 0.2 * float(np.min(hi - lo))))
+        vs.append(v)
+        fs.append(f + n)
+        n += len(v)
+    return np.vstack(vs), np.vstack(fs)
+
+
+def sizing_field(size_mm, probe_rect_mm, settings: MeshSettings):
+    """Background tets with the target edge length at their vertices (mm)."""
+    sx, sy, sz = size_mm
+    step = max(settings.probe_edge_mm, min(size_mm) / 24)
+    nx, ny, nz = (max(3, int(np.ceil(s / step)) + 1) for s in size_mm)
+    xs, ys, zs = np.linspace(0, sx, nx), np.linspace(0, sy, ny), np.linspace(0, sz, nz)
+    X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
+    pts = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    idx = np.arange(len(pts)).reshape(nx, ny, nz)
+    # six tets per cube (Kuhn subdivision), consistent across neighbours
+    c = np.stack([idx[:-1, :-1, :-1], idx[1:, :-1, :-1], idx[1:, 1:, :-1], idx[:-1, 1:, :-1],
+                  idx[:-1, :-1, 1:], idx[1:, :-1, 1:], idx[1:, 1:, 1:], idx[:-1, 1:, 1:]], -1).reshape(-1, 8)
+    kuhn = [(0, 1, 2, 6), (0, 2, 3, 6), (0, 3, 7, 6), (0, 7, 4, 6), (0, 4, 5, 6), (0, 5, 1, 6)]
+    tets = np.concatenate([c[:, list(k)] for k in kuhn]).astype(np.int32)
+    x0, x1, y0, y1 = probe_rect_mm
+    dx = np.maximum(np.maximum(x0 - pts[:, 0], pts[:, 0] - x1), 0)
+    dy = np.maximum(np.maximum(y0 - pts[:, 1], pts[:, 1] - y1), 0)
+    dz = sz - pts[:, 2]
+    h = np.minimum(settings.probe_edge_mm + settings.grading * np.sqrt(dx**2 + dy**2 + dz**2), settings.edge_mm)
+    return pts, tets, h
+
+
+def _tetwild_job(args, queue):
+    """Child process: run fTetWild and send the result back."""
+    try:
+        import tempfile
+
+        import pytetwild
+
+        # fTetWild writes __tracked_surface.stl into the working directory
+        os.chdir(tempfile.mkdtemp(prefix="elastoid-tetwild-"))
+        v, f, bg_v, bg_t, bg_h, edge, eps, threads = args
+        V, T = pytetwild.tetrahedralize(v, f.astype(np.int32), edge_length_abs=edge, epsilon=eps,
+                                        bg_vertices=bg_v, bg_tets=bg_t, bg_values=bg_h, num_threads=threads)
+        queue.put(("ok", np.asarray(V, float), np.asarray(T, np.int64)))
+    except BaseException as exc:  # report anything to the parent
+        queue.put(("error", repr(exc), None))
+
+
+def _mesh_key(size_mm, probe_rect_mm, regions, settings) -> str:
+    def reg(r: Region):
+        d = {k: v for k, v in asdict(r).items() if k not in ("surface_mesh", "file")}
+        if r.surface_mesh is not None:
+            d["surface"] = hashlib.sha1(np.ascontiguousarray(r.surface_mesh[0]).tobytes()
+                                        + np.ascontiguousarray(r.surface_mesh[1]).tobytes()).hexdigest()
+        return d
+
+    blob = json.dumps({"v": MESH_VERSION, "size": list(size_mm), "probe": list(probe_rect_mm),
+                       "regions": [reg(r) for r in regions], "settings": asdict(settings)},
+                      sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:24]
+
+
+def cache_dir() -> Path:
+    d = Path(os.environ.get("ELASTOID_CACHE_DIR", Path.home() / ".cache" / "elastoid")) / "meshes"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def build_mesh(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: MeshSettings = MeshSettings(),
+               *, progress: Callable[[str], None] | None = None, cancel: threading.Event | None = None,
+               use_cache: bool = True, timeout_s: float = 600.0) -> TetMesh:
+    """Mesh the specimen box with its regions; refined under the probe face.
+
+    Runs fTetWild in a child process; ``cancel`` (a threading.Event) stops it.
+    """
+    size_mm = tuple(float(s) for s in size_mm)
+    key = _mesh_key(size_mm, probe_rect_mm, regions, settings)
+    path = cache_dir() / f"{key}.npz"
+    names = tuple(r.name for r in regions)
+    if use_cache and path.is_file():
+        try:
+            d = np.load(path)
+            if progress:
+                progress("mesh loaded from cache")
+            return TetMesh(d["points"], d["tets"], d["labels"], names, size_mm, tuple(probe_rect_mm))
+        except (OSError, ValueError, KeyError):
+            path.unlink(missing_ok=True)
+    v, f = input_surface(size_mm, probe_rect_mm, regions, settings)
+    bg_v, bg_t, bg_h = sizing_field(size_mm, probe_rect_mm, settings)
+    if progress:
+        progress(f"meshing: {len(f)} input triangles")
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    threads = int(os.environ.get("ELASTOID_MESH_THREADS", "0"))
+    proc = ctx.Process(target=_tetwild_job, args=((v, f, bg_v, bg_t, bg_h, settings.edge_mm, settings.epsilon, threads), queue),
+                       daemon=True)
+    proc.start()
+    import queue as _q
+    import time
+
+    t0 = time.monotonic()
+    result = None
+    try:
+        while result is None:
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("meshing cancelled")
+            try:
+                result = queue.get(timeout=0.1)
+            except _q.Empty:
+                if not proc.is_alive():
+                    raise MeshingError(f"the mesher stopped unexpectedly (exit code {proc.exitcode})") from None
+                if time.monotonic() - t0 > timeout_s:
+                    raise MeshingError(f"meshing took longer than {timeout_s:.0f} s") from None
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+        proc.join(timeout=5)
+    status, V, T = result
+    if status != "ok":
+        raise MeshingError(f"fTetWild failed: {V}")
+    V, T = _orient_and_clean(V, T)
+    labels = paint_labels(V[T].mean(axis=1), regions)
+    mesh = TetMesh(V, T, labels, names, size_mm, tuple(probe_rect_mm))
+    missing = [n for k, n in enumerate(names) if not np.any(labels == k)]
+    if missing:
+        raise MeshingError(f"region(s) {', '.join(missing)} received no elements; refine the mesh (smaller edge_mm)")
+    if use_cache:
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, points=V, tets=T, labels=labels)
+        os.replace(tmp, path)
+    if progress:
+        progress(f"mesh: {mesh.n_nodes} nodes, {mesh.n_tets} tetrahedra")
+    return mesh
+
+
+def _orient_and_clean(V: np.ndarray, T: np.ndarray):
+    """Positive orientation for every tet; drop unused vertices; snap box faces."""
+    p = V[T]
+    vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+    T = T.copy()
+    neg = vol < 0
+    T[neg, 1], T[neg, 2] = T[neg, 2].copy(), T[neg, 1].copy()
+    T = T[np.abs(vol) > 1e-12]
+    used = np.unique(T)
+    remap = -np.ones(len(V), np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[T]
+
+
+def specimen_mesh(exp, settings: MeshSettings = MeshSettings(), **kw) -> TetMesh:
+    """Mesh of an experiment's specimen under its probe."""
+    return build_mesh(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions, settings, **kw)

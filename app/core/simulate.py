@@ -1,0 +1,135 @@
+"""Synthetic experiments: the truth on a finer mesh, B-mode frames from the
+scatterer simulator, a noisy force log, and ``truth.toml`` beside the folder's
+experiment.toml (never read by identification or diagnosis)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from app.core.experiment import Experiment, ForceLog, Frame, Imaging, Probe, Specimen, write_experiment
+from app.core.fem import interpolation_matrix
+from app.core.forward import build_model
+from app.core.geometry import Region
+from app.core.mesh import MeshSettings, specimen_mesh
+from app.core.ultrasound import Transducer, make_scatterers, render
+
+
+def paper_regions() -> tuple[Region, ...]:
+    return (Region("B", "background"), Region("A", "sphere", center_mm=(45.0, 45.0, 66.0), radius_mm=15.0))
+
+
+@dataclass(frozen=True)
+class SyntheticSpec:
+    """What to simulate. Lengths mm, moduli kPa, times s, forces N."""
+
+    name: str = "Synthetic gelatin phantom, stiff inclusion"
+    size_mm: tuple = (90.0, 90.0, 96.0)
+    regions: tuple = field(default_factory=paper_regions)
+    moduli_kPa: dict = field(default_factory=lambda: {"B": 18.0, "A": 63.0})
+    nu: float = 0.49
+    face_mm: tuple = (40.0, 10.0)
+    probe_center_mm: tuple | None = None  # default: centre of the top face
+    depth_mm: float = 14.8
+    speed_mm_s: float = 1.0
+    hold_s: float = 0.0
+    unload: bool = False
+    rate_Hz: float = 100.0
+    frames_at_mm: tuple = (0.0, 7.4, 14.8)
+    image_shape: tuple = (256, 200)  # rows (depth), columns (lateral)
+    pixel_spacing_mm: tuple = (0.2, 0.2)
+    force_noise_N: float = 0.02
+    truth_mesh: MeshSettings = field(default_factory=lambda: MeshSettings().with_scale(0.7))
+    echogenicity: dict = field(default_factory=lambda: {"A": 1.8})
+    scatterer_density_per_mm3: float = 25.0
+    seed: int = 0
+    # write the true moduli as the experiment's [reference] (as a rheometer would give them)
+    reference_method: str | None = None
+
+    def with_(self, **kw) -> "SyntheticSpec":
+        return replace(self, **kw)
+
+
+def _template(spec: SyntheticSpec) -> Experiment:
+    rows, cols = spec.image_shape
+    center = spec.probe_center_mm or (spec.size_mm[0] / 2, spec.size_mm[1] / 2)
+    m = max(2, cols // 20)
+    roi = (m, m, cols - m, min(rows - m, int(rows * 0.72)))
+    imaging = Imaging(pixel_spacing_mm=tuple(spec.pixel_spacing_mm), probe_face_px=((cols - 1) / 2.0, 0.0),
+                      elevation_thickness_mm=1.0, roi_px=roi)
+    return Experiment(name=spec.name, specimen=Specimen(tuple(spec.size_mm), tuple(spec.regions)),
+                      probe=Probe(tuple(spec.face_mm), tuple(center), (1.0, 0.0, 0.0)), imaging=imaging,
+                      frames=(), force_log=ForceLog(np.zeros(2), np.zeros(2), np.zeros(2)),
+                      notes=f"simulated by ElastoID (seed {spec.seed})")
+
+
+def protocol(spec: SyntheticSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(time_s, displacement_mm) of a ramp, optional hold and optional unload."""
+    t_ramp = spec.depth_mm / spec.speed_mm_s
+    t_end = t_ramp + spec.hold_s + (t_ramp if spec.unload else 0.0)
+    t = np.arange(0.0, t_end + 0.5 / spec.rate_Hz, 1.0 / spec.rate_Hz)
+    d = np.clip(t * spec.speed_mm_s, 0, spec.depth_mm)
+    if spec.unload:
+        t_un = t_ramp + spec.hold_s
+        d = np.where(t > t_un, np.clip(spec.depth_mm - (t - t_un) * spec.speed_mm_s, 0, None), d)
+    return t, d
+
+
+def simulate_experiment(out: str | Path, spec: SyntheticSpec = SyntheticSpec(), *,
+                        progress: Callable[[str], None] | None = None, cancel=None, overwrite: bool = False) -> Path:
+    """Write a synthetic experiment folder (format 1) with ``truth.toml`` beside it."""
+    say = progress or (lambda s: None)
+    rng = np.random.default_rng(spec.seed)
+    exp = _template(spec)
+    say("meshing the truth (finer than identification meshes)")
+    mesh = specimen_mesh(exp, spec.truth_mesh, progress=say, cancel=cancel)
+    say("solving the truth")
+    fe = build_model(mesh)
+    E = [spec.moduli_kPa[r.name] for r in spec.regions]
+    u_per_mm, force_per_mm = fe.solve(E, spec.nu)
+    say("scattering")
+    scat = make_scatterers(exp, rng, spec.depth_mm, spec.scatterer_density_per_mm3, spec.echogenicity)
+    P = interpolation_matrix(fe.space, scat.points_mm)
+    ubar = (P @ u_per_mm).reshape(-1, 3)
+    t, d = protocol(spec)
+    images, frames, ref = {}, [], None
+    for k, dk in enumerate(spec.frames_at_mm):
+        say(f"rendering frame {k} at {dk:g} mm")
+        img, ref = render(scat.points_mm + dk * ubar, scat.amplitude, exp, dk, spec.image_shape,
+                          reference=ref, rng=rng)
+        name = f"images/frame_{k:03d}.png"
+        images[name] = img
+        tk = float(dk / spec.speed_mm_s)
+        frames.append(Frame(name, round(tk, 6), float(dk)))
+    F = force_per_mm * d + spec.force_noise_N * rng.standard_normal(len(t))
+    exp = replace(exp, frames=tuple(frames), force_log=ForceLog(t, d, F))
+    if spec.reference_method:
+        exp = replace(exp, reference={"youngs_modulus_kPa": dict(spec.moduli_kPa), "method": spec.reference_method})
+    out = Path(out)
+    write_experiment(out, exp, images, overwrite=overwrite)
+    write_truth(out, spec, mesh.n_nodes, mesh.n_tets, force_per_mm)
+    say(f"wrote {out}")
+    return out
+
+
+def write_truth(out: Path, spec: SyntheticSpec, n_nodes: int, n_tets: int, force_per_mm: float,
+                effects: tuple = (), extra: dict | None = None) -> None:
+    import tomli_w
+
+    doc = {"moduli_kPa": dict(spec.moduli_kPa), "nu": spec.nu, "effects": list(effects),
+           "seed": spec.seed, "force_noise_N": spec.force_noise_N,
+           "truth_mesh": {"nodes": n_nodes, "tetrahedra": n_tets, "edge_mm": spec.truth_mesh.edge_mm,
+                          "probe_edge_mm": spec.truth_mesh.probe_edge_mm},
+           "force_N_per_mm": force_per_mm}
+    if extra:
+        doc.update(extra)
+    (Path(out) / "truth.toml").write_text(tomli_w.dumps(doc), encoding="utf-8")
+
+
+def read_truth(folder: str | Path) -> dict:
+    import tomllib
+
+    return tomllib.loads((Path(folder) / "truth.toml").read_text(encoding="utf-8"))

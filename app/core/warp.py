@@ -1,0 +1,203 @@
+"""Warping the source frame by the FE displacement field, as the paper does.
+
+The FE displacement, sampled at control points on the image plane, is carried
+to pixels by a thin-plate spline (TPS). The exact TPS is :class:`TPS`; the fast
+path evaluates that same TPS on a coarse pixel grid (every ``step`` pixels)
+and upsamples it with separable cubic interpolation. Because the TPS is linear
+in the control values, the whole chain is a few small matrix products per
+evaluation. Its error against the exact TPS on every pixel is measured in the
+tests and in bench/ (well under 0.1 px on the ROI).
+
+Pixel displacement: a material point seen at source pixel p (frame at probe
+travel d0) appears in the target frame (travel d1) at q = p + delta(p) with
+    delta_col = (u1 - u0) . lateral / spacing_col
+    delta_row = (-(d1 - d0) - (u1z - u0z)) / spacing_row
+The warped source W(q) = S(p) needs the inverse map, found by fixed-point
+iteration p = q - delta(p).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import map_coordinates, spline_filter
+
+
+def _tps_kernel(r2: np.ndarray) -> np.ndarray:
+    """phi(r) = r^2 log r, written with r^2 (0 at r = 0), as scipy's thin_plate_spline."""
+    out = np.zeros_like(r2)
+    m = r2 > 0
+    out[m] = 0.5 * r2[m] * np.log(r2[m])
+    return out
+
+
+class TPS:
+    """Exact 2-D thin-plate spline through control points (n, 2)."""
+
+    def __init__(self, ctrl: np.ndarray):
+        self.ctrl = np.asarray(ctrl, float)
+        n = len(self.ctrl)
+        d2 = ((self.ctrl[:, None, :] - self.ctrl[None, :, :]) ** 2).sum(-1)
+        L = np.zeros((n + 3, n + 3))
+        L[:n, :n] = _tps_kernel(d2)
+        P = np.column_stack([np.ones(n), self.ctrl])
+        L[:n, n:] = P
+        L[n:, :n] = P.T
+        self._Linv = np.linalg.inv(L)
+
+    def basis(self, pts: np.ndarray) -> np.ndarray:
+        """(m, n+3) kernel and polynomial terms at points."""
+        pts = np.asarray(pts, float)
+        d2 = ((pts[:, None, :] - self.ctrl[None, :, :]) ** 2).sum(-1)
+        return np.column_stack([_tps_kernel(d2), np.ones(len(pts)), pts])
+
+    def matrix(self, pts: np.ndarray) -> np.ndarray:
+        """(m, n): values at pts = matrix @ control values."""
+        n = len(self.ctrl)
+        return self.basis(pts) @ self._Linv[:, :n]
+
+    def __call__(self, pts: np.ndarray, values: np.ndarray) -> np.ndarray:
+        return self.matrix(pts) @ values
+
+
+def cubic_matrix(n_fine: int, coarse_pos: np.ndarray) -> np.ndarray:
+    """Dense (n_fine, n_coarse) interpolation with the Catmull-Rom cubic from
+    samples at positions coarse_pos (uniform, in fine-pixel units) to 0..n_fine-1."""
+    step = coarse_pos[1] - coarse_pos[0]
+    x = (np.arange(n_fine) - coarse_pos[0]) / step
+    nc = len(coarse_pos)
+    U = np.zeros((n_fine, nc))
+    i0 = np.clip(np.floor(x).astype(int), 0, nc - 2)
+    t = x - i0
+    w = [(-t**3 + 2 * t**2 - t) / 2, (3 * t**3 - 5 * t**2 + 2) / 2, (-3 * t**3 + 4 * t**2 + t) / 2, (t**3 - t**2) / 2]
+    for k, wk in zip((-1, 0, 1, 2), w):
+        j = i0 + k
+        # reflect at the ends (linear extrapolation of the ghost samples)
+        jl = np.clip(j, 0, nc - 1)
+        np.add.at(U, (np.arange(n_fine), jl), wk * (j == jl))
+        lo = j < 0
+        np.add.at(U, (np.arange(n_fine)[lo], np.zeros(lo.sum(), int)), 2 * wk[lo])
+        np.add.at(U, (np.arange(n_fine)[lo], np.ones(lo.sum(), int)), -wk[lo])
+        hi = j > nc - 1
+        np.add.at(U, (np.arange(n_fine)[hi], np.full(hi.sum(), nc - 1)), 2 * wk[hi])
+        np.add.at(U, (np.arange(n_fine)[hi], np.full(hi.sum(), nc - 2)), -wk[hi])
+    return U
+
+
+@dataclass
+class WarpGrid:
+    """Pixel region (col0, row0, col1, row1), exclusive ends, where the warp is computed."""
+
+    col0: int
+    row0: int
+    col1: int
+    row1: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.row1 - self.row0, self.col1 - self.col0)
+
+
+class FastTPSField:
+    """TPS from control values to every pixel of a grid, via a coarse grid and
+    separable cubic upsampling: ``field(values (n, 2)) -> (rows, cols, 2)``."""
+
+    def __init__(self, tps: TPS, grid: WarpGrid, step: int = 4):
+        rows, cols = grid.shape
+        rc = np.arange(0, rows - 1 + step, step, dtype=float)
+        cc = np.arange(0, cols - 1 + step, step, dtype=float)
+        self.rc, self.cc = rc, cc
+        R, C = np.meshgrid(rc + grid.row0, cc + grid.col0, indexing="ij")
+        self.M = tps.matrix(np.column_stack([C.ravel(), R.ravel()]))  # points as (col, row)
+        self.Ur = cubic_matrix(rows, rc)
+        self.Uc = cubic_matrix(cols, cc)
+        self.coarse_shape = (len(rc), len(cc))
+
+    def coarse(self, values: np.ndarray) -> np.ndarray:
+        return (self.M @ values).reshape(*self.coarse_shape, -1)
+
+    def upsample(self, coarse: np.ndarray) -> np.ndarray:
+        return np.einsum("ir,rck,jc->ijk", self.Ur, coarse, self.Uc, optimize=True)
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        return self.upsample(self.coarse(values))
+
+
+def _grid_points(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    R, C = np.meshgrid(rows, cols, indexing="ij")
+    return np.column_stack([C.ravel(), R.ravel()])  # (col, row)
+
+
+def _fixed_point_inverse(sample, q_rows, q_cols, iterations):
+    """e(q) with q - e(q) = p and q = p + delta(p): iterate e = delta(q - e)."""
+    e_c = np.zeros_like(q_rows)
+    e_r = np.zeros_like(q_rows)
+    for _ in range(iterations):
+        e_c, e_r = sample(q_rows - e_r, q_cols - e_c)
+    return np.stack([e_c, e_r], axis=-1)
+
+
+class FastWarp:
+    """The fast warp of a source frame onto a target frame's ROI.
+
+    The forward displacement delta is evaluated (exact TPS) on a coarse grid over
+    the whole source image; the inverse is found by fixed-point iteration on a
+    coarse grid over the target ROI, sampling delta with cubic splines, then
+    upsampled to every ROI pixel with separable cubic interpolation.
+    """
+
+    def __init__(self, tps: TPS, image_shape: tuple[int, int], roi: WarpGrid, step: int = 4, iterations: int = 10):
+        H, W = image_shape
+        self.step, self.iterations, self.roi = step, iterations, roi
+        self.src_rows = np.arange(0, H - 1 + step, step, dtype=float)
+        self.src_cols = np.arange(0, W - 1 + step, step, dtype=float)
+        self.M = tps.matrix(_grid_points(self.src_rows, self.src_cols))
+        rows, cols = roi.shape
+        rq = np.arange(0, rows - 1 + step, step, dtype=float)
+        cq = np.arange(0, cols - 1 + step, step, dtype=float)
+        self.Ur, self.Uc = cubic_matrix(rows, rq), cubic_matrix(cols, cq)
+        self.q_rows, self.q_cols = np.meshgrid(rq + roi.row0, cq + roi.col0, indexing="ij")
+        self._R, self._C = np.mgrid[roi.row0:roi.row1, roi.col0:roi.col1].astype(float)
+
+    def forward_coarse(self, values_px: np.ndarray) -> np.ndarray:
+        return (self.M @ values_px).reshape(len(self.src_rows), len(self.src_cols), 2)
+
+    def inverse(self, values_px: np.ndarray | None = None, coarse: np.ndarray | None = None) -> np.ndarray:
+        """Inverse displacement (rows, cols, 2) px on every ROI pixel, from control
+        values (n, 2) px or from the forward field already on the coarse grid."""
+        F = self.forward_coarse(values_px) if coarse is None else coarse
+        s = self.step
+        F0 = spline_filter(F[..., 0], order=3, mode="nearest")
+        F1 = spline_filter(F[..., 1], order=3, mode="nearest")
+
+        def sample(r, c):
+            coords = np.stack([r / s, c / s])
+            return (map_coordinates(F0, coords, order=3, mode="nearest", prefilter=False),
+                    map_coordinates(F1, coords, order=3, mode="nearest", prefilter=False))
+
+        e = _fixed_point_inverse(sample, self.q_rows, self.q_cols, self.iterations)
+        return np.stack([self.Ur @ e[..., k] @ self.Uc.T for k in (0, 1)], axis=-1)
+
+    def sample_positions(self, values_px=None, coarse=None) -> tuple[np.ndarray, np.ndarray]:
+        e = self.inverse(values_px, coarse)
+        return self._R - e[..., 1], self._C - e[..., 0]
+
+    def __call__(self, source: np.ndarray, values_px=None, coarse=None) -> np.ndarray:
+        r, c = self.sample_positions(values_px, coarse)
+        return map_coordinates(source, np.stack([r, c]), order=1, mode="nearest")
+
+
+def exact_inverse(evaluate, image_shape, roi: WarpGrid, iterations: int = 10) -> np.ndarray:
+    """Reference inverse displacement on the ROI: ``evaluate(points (n, 2) as (col, row))``
+    gives the exact TPS displacement (n, 2) at every source pixel; the fixed point
+    then samples that pixel field bilinearly."""
+    H, W = image_shape
+    full = evaluate(_grid_points(np.arange(H, dtype=float), np.arange(W, dtype=float))).reshape(H, W, 2)
+    q_rows, q_cols = np.mgrid[roi.row0:roi.row1, roi.col0:roi.col1].astype(float)
+
+    def sample(r, c):
+        return (map_coordinates(full[..., 0], [r, c], order=1, mode="nearest"),
+                map_coordinates(full[..., 1], [r, c], order=1, mode="nearest"))
+
+    return _fixed_point_inverse(sample, q_rows, q_cols, iterations)
