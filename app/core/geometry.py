@@ -97,7 +97,17 @@ class Region:
         return c - r, c + r
 
     def surface(self, edge_mm: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
-        """A closed, outward-oriented triangulation (vertices mm, triangles)."""
+        """A closed triangulation (vertices mm, triangles). Curved shapes are scaled
+        about their centre so the polygon encloses exactly the analytic volume."""
+        v, f = self._polygon(edge_mm)
+        if self.kind in ("sphere", "ellipsoid", "cylinder"):
+            c = np.asarray(self.center_mm, float)
+            a, b, cc = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
+            vol = abs(np.einsum("ij,ij->i", a, np.cross(b, cc)).sum()) / 6.0
+            v = c + (v - c) * (self.volume_mm3() / vol) ** (1.0 / 3.0)
+        return v, f
+
+    def _polygon(self, edge_mm: float) -> tuple[np.ndarray, np.ndarray]:
         if self.kind == "surface":
             return self.surface_mesh
         if self.kind == "box":

@@ -24,7 +24,7 @@ import numpy as np
 from app.core.errors import Cancelled, MeshingError
 from app.core.geometry import Region, box_surface, paint_labels
 
-MESH_VERSION = 4  # bump when meshing changes, to invalidate caches
+MESH_VERSION = 5  # bump when meshing changes, to invalidate caches
 
 
 @dataclass(frozen=True)
@@ -162,7 +162,7 @@ def input_surface(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings:
     redge = settings.region_edge_mm or 0.5 * (settings.edge_mm + settings.probe_edge_mm)
     for r in regions[1:]:
         lo, hi = r.bounds_mm()
-        v, f = r.surface(edge_mm=min(redge, 4.0, 0.2 * float(np.min(hi - lo))))
+        v, f = r.surface(edge_mm=min(redge, 4.0, 0.15 * float(np.min(hi - lo))))
         vs.append(v)
         fs.append(f + n)
         n += len(v)
@@ -281,6 +281,7 @@ def build_mesh(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: Me
     if status != "ok":
         raise MeshingError(f"fTetWild failed: {V}")
     V, T = _orient_and_clean(V, T)
+    V = snap_to_probe_outline(V, T, size_mm, probe_rect_mm, 0.4 * settings.probe_edge_mm)
     labels = paint_labels(V[T].mean(axis=1), regions)
     mesh = TetMesh(V, T, labels, names, size_mm, tuple(probe_rect_mm))
     missing = [n for k, n in enumerate(names) if not np.any(labels == k)]
@@ -293,6 +294,36 @@ def build_mesh(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: Me
     if progress:
         progress(f"mesh: {mesh.n_nodes} nodes, {mesh.n_tets} tetrahedra")
     return mesh
+
+
+def snap_to_probe_outline(V: np.ndarray, T: np.ndarray, size_mm, rect, tol: float) -> np.ndarray:
+    """Move top-face vertices lying within ``tol`` of the probe outline onto it, so the
+    face is meshed exactly; a move that would flatten or invert a tet is undone."""
+    sz = size_mm[2]
+    x0, x1, y0, y1 = rect
+    V = V.copy()
+    top = np.flatnonzero(np.abs(V[:, 2] - sz) < 1e-6)
+    moved = {}
+    for axis, lines, other, (lo, hi) in ((0, (x0, x1), 1, (y0, y1)), (1, (y0, y1), 0, (x0, x1))):
+        for line in lines:
+            p = V[top]
+            near = (np.abs(p[:, axis] - line) < tol) & (p[:, other] > lo - tol) & (p[:, other] < hi + tol)
+            for i in top[near]:
+                moved.setdefault(i, V[i].copy())
+                V[i, axis] = line
+    if not moved:
+        return V
+    ids = np.fromiter(moved, int)
+    inc = np.flatnonzero(np.isin(T, ids).any(axis=1))
+    for _ in range(5):
+        p = V[T[inc]]
+        vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+        bad = inc[vol <= 1e-3 * np.median(np.abs(vol))]
+        if len(bad) == 0:
+            break
+        for i in np.intersect1d(np.unique(T[bad]), ids):
+            V[i] = moved[i]
+    return V
 
 
 def _orient_and_clean(V: np.ndarray, T: np.ndarray):

@@ -154,8 +154,9 @@ class FastWarp:
         self.src_cols = np.arange(0, W - 1 + step, step, dtype=float)
         self.M = tps.matrix(_grid_points(self.src_rows, self.src_cols))
         rows, cols = roi.shape
-        rq = np.arange(0, rows - 1 + step, step, dtype=float)
-        cq = np.arange(0, cols - 1 + step, step, dtype=float)
+        # one extra coarse sample beyond each end: the cubic then needs no ghost values
+        rq = np.arange(-step, rows - 1 + 2 * step, step, dtype=float)
+        cq = np.arange(-step, cols - 1 + 2 * step, step, dtype=float)
         self.Ur, self.Uc = cubic_matrix(rows, rq), cubic_matrix(cols, cq)
         self.q_rows, self.q_cols = np.meshgrid(rq + roi.row0, cq + roi.col0, indexing="ij")
         self._R, self._C = np.mgrid[roi.row0:roi.row1, roi.col0:roi.col1].astype(float)
@@ -189,15 +190,13 @@ class FastWarp:
 
 
 def exact_inverse(evaluate, image_shape, roi: WarpGrid, iterations: int = 10) -> np.ndarray:
-    """Reference inverse displacement on the ROI: ``evaluate(points (n, 2) as (col, row))``
-    gives the exact TPS displacement (n, 2) at every source pixel; the fixed point
-    then samples that pixel field bilinearly."""
-    H, W = image_shape
-    full = evaluate(_grid_points(np.arange(H, dtype=float), np.arange(W, dtype=float))).reshape(H, W, 2)
+    """Reference inverse displacement on the ROI: the fixed point e = delta(q - e)
+    with ``evaluate(points (n, 2) as (col, row)) -> (n, 2)`` the exact TPS
+    evaluated at the iterated sub-pixel points themselves (no grid, no upsampling)."""
     q_rows, q_cols = np.mgrid[roi.row0:roi.row1, roi.col0:roi.col1].astype(float)
 
     def sample(r, c):
-        return (map_coordinates(full[..., 0], [r, c], order=1, mode="nearest"),
-                map_coordinates(full[..., 1], [r, c], order=1, mode="nearest"))
+        v = evaluate(np.column_stack([c.ravel(), r.ravel()]))
+        return v[:, 0].reshape(r.shape), v[:, 1].reshape(r.shape)
 
     return _fixed_point_inverse(sample, q_rows, q_cols, iterations)

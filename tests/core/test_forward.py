@@ -1,0 +1,46 @@
+import numpy as np
+import pytest
+
+from app.core.forward import Boundary, ReducedModel, build_model, region_terms, training_set
+from app.core.geometry import Region
+from app.core.mesh import MeshSettings, build_mesh
+
+
+@pytest.fixture(scope="module")
+def model():
+    regions = (Region("B", "background"), Region("A", "sphere", center_mm=(20.0, 20.0, 18.0), radius_mm=6.0))
+    mesh = build_mesh((40.0, 40.0, 30.0), (10.0, 30.0, 16.0, 24.0), regions, MeshSettings(edge_mm=6.0, probe_edge_mm=2.0))
+    return build_model(mesh)
+
+
+def test_reduced_model_matches_full_solves(model):
+    rm = ReducedModel(model, region_terms(2, 0.49))
+    rm.train(training_set(2))
+    for E in ([18.0, 63.0], [20.0, 5.0], [7.0, 7.0], [1.0, 200.0]):  # the last lies outside the trained range
+        u_full, F_full = model.solve(E)
+        a = rm.coords(E)
+        u_rb = rm.full_field(a)
+        assert np.linalg.norm(u_rb - u_full) / np.linalg.norm(u_full) < 1e-6
+        assert rm.force_N_per_mm(E, a) == pytest.approx(F_full, rel=1e-7)
+    assert rm.n_full_solves == 1  # one factorization; everything else back-substitutions
+
+
+def test_displacement_control_depends_only_on_moduli_ratios(model):
+    u1, F1 = model.solve([18.0, 63.0])
+    u2, F2 = model.solve([36.0, 126.0])
+    assert np.allclose(u1, u2, atol=1e-12 * np.abs(u1).max())
+    assert F2 == pytest.approx(2 * F1, rel=1e-10)
+    assert F1 > 0  # pressing gives a compressive (positive) force
+
+
+def test_relaxed_boundaries_are_softer(model):
+    _, F_bonded = model.solve([18.0, 63.0])
+    forces = {}
+    for b in (Boundary("sliding", "bonded"), Boundary("bonded", "slip"), Boundary("sliding", "slip")):
+        m = build_model(model.space.mesh, b, op=model.op)
+        u, F = m.solve([18.0, 63.0])
+        assert np.all(np.isfinite(u))
+        forces[b] = F
+        assert 0 < F < F_bonded
+    assert forces[Boundary("sliding", "slip")] < min(forces[Boundary("sliding", "bonded")],
+                                                     forces[Boundary("bonded", "slip")])

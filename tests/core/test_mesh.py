@@ -1,0 +1,79 @@
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from app.core.errors import Cancelled
+from app.core.geometry import Region
+from app.core.mesh import MeshSettings, build_mesh, quality
+
+SIZE = (60.0, 50.0, 40.0)
+PROBE = (15.0, 45.0, 21.0, 29.0)  # 30 x 8 mm face
+REGIONS = (
+    Region("B", "background"),
+    Region("S", "sphere", center_mm=(18.0, 14.0, 22.0), radius_mm=7.0),
+    Region("K", "box", center_mm=(44.0, 14.0, 20.0), size_mm=(10.0, 10.0, 12.0)),
+    Region("C", "cylinder", center_mm=(18.0, 36.0, 18.0), radius_mm=6.0, height_mm=14.0, axis=(0.0, 0.0, 1.0)),
+    Region("E", "ellipsoid", center_mm=(44.0, 36.0, 20.0), radii_mm=(8.0, 6.0, 5.0)),
+)
+SETTINGS = MeshSettings(edge_mm=6.0, probe_edge_mm=2.0)
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return build_mesh(SIZE, PROBE, REGIONS, SETTINGS)
+
+
+def test_every_region_kind_is_meshed_with_its_volume(mesh):
+    q = quality(mesh, REGIONS)
+    for name in ("S", "K", "C", "E", "B"):
+        geo = q.region_geometric_volume_mm3[name]
+        assert abs(q.region_volume_mm3[name] - geo) / geo < 0.06, (name, q.lines())
+    assert q.min_dihedral_deg > 3.0
+    assert abs(mesh.tet_volumes_mm3().sum() - np.prod(SIZE)) / np.prod(SIZE) < 1e-3
+    assert all(np.all(mesh.tet_volumes_mm3() > 0) for _ in [0])
+
+
+def test_probe_face_is_resolved_by_many_nodes(mesh):
+    """The face outline is imprinted and refined: many vertices lie on it, on its edges too."""
+    pn = mesh.probe_nodes()
+    assert pn.sum() >= 40
+    p = mesh.points_mm[pn]
+    x0, x1, y0, y1 = PROBE
+    assert np.isclose(p[:, 0].min(), x0) and np.isclose(p[:, 0].max(), x1)
+    assert np.isclose(p[:, 1].min(), y0) and np.isclose(p[:, 1].max(), y1)
+    # refined under the probe: edges there are shorter than far away
+    e = mesh.points_mm[mesh.tets[:, [0, 1]]]
+    length = np.linalg.norm(e[:, 0] - e[:, 1], axis=1)
+    c = mesh.points_mm[mesh.tets].mean(axis=1)
+    near = (c[:, 2] > SIZE[2] - 4) & (np.abs(c[:, 0] - 30) < 15) & (np.abs(c[:, 1] - 25) < 4)
+    far = c[:, 2] < 10
+    assert np.median(length[near]) < 0.6 * np.median(length[far])
+
+
+def test_surface_file_region(tmp_path):
+    sphere = Region("S", "sphere", center_mm=(20.0, 20.0, 15.0), radius_mm=6.0)
+    surf = Region("S", "surface", surface_mesh=sphere.surface(1.0))
+    m = build_mesh((40.0, 40.0, 30.0), (10.0, 30.0, 16.0, 24.0), (Region("B", "background"), surf),
+                   MeshSettings(edge_mm=6.0, probe_edge_mm=2.5))
+    q = quality(m, (Region("B", "background"), surf))
+    assert abs(q.region_volume_mm3["S"] / q.region_geometric_volume_mm3["S"] - 1) < 0.06
+
+
+def test_meshes_are_cached_by_their_inputs(mesh):
+    t0 = time.perf_counter()
+    again = build_mesh(SIZE, PROBE, REGIONS, SETTINGS)
+    assert time.perf_counter() - t0 < 2.0
+    assert np.array_equal(again.tets, mesh.tets)
+    other = build_mesh(SIZE, PROBE, REGIONS[:2], MeshSettings(edge_mm=12.0, probe_edge_mm=4.0))
+    assert other.n_tets != mesh.n_tets
+
+
+def test_meshing_can_be_cancelled():
+    cancel = threading.Event()
+    threading.Timer(0.5, cancel.set).start()
+    t0 = time.perf_counter()
+    with pytest.raises(Cancelled):
+        build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=3.0, probe_edge_mm=1.0), cancel=cancel, use_cache=False)
+    assert time.perf_counter() - t0 < 5.0

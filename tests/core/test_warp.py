@@ -1,0 +1,67 @@
+import numpy as np
+import pytest
+from scipy.interpolate import RBFInterpolator
+from scipy.ndimage import gaussian_filter
+
+from app.core.warp import TPS, FastWarp, WarpGrid, exact_inverse
+
+
+def _control(H=256, W=200, step=10.0):
+    cc, rr = np.meshgrid(np.arange(-2 * step, W + 2 * step, step), np.arange(0, H + 2 * step, step))
+    return np.column_stack([cc.ravel(), rr.ravel()])
+
+
+def _indentation_field(ctrl, scale=1.0):
+    """Smooth, large (up to ~70 px) displacement like a probe pressing 14 mm."""
+    c, r = ctrl[:, 0], np.clip(ctrl[:, 1], 0, None)
+    d_r = -70 * scale * (1 - np.exp(-r / 120)) + 6 * scale * np.exp(-((c - 100) / 50) ** 2) * np.exp(-r / 80)
+    d_c = 9 * scale * np.tanh((c - 100) / 40) * np.exp(-r / 90)
+    return np.column_stack([d_c, d_r])
+
+
+def test_tps_matches_scipy_rbf_interpolator():
+    rng = np.random.default_rng(0)
+    ctrl = rng.uniform(0, 100, (60, 2))
+    vals = rng.normal(size=(60, 2))
+    pts = rng.uniform(0, 100, (500, 2))
+    ours = TPS(ctrl)(pts, vals)
+    ref = RBFInterpolator(ctrl, vals, kernel="thin_plate_spline")(pts)
+    assert np.abs(ours - ref).max() < 1e-8
+    assert np.allclose(TPS(ctrl)(ctrl, vals), vals, atol=1e-9)  # interpolates
+
+
+def test_tps_reproduces_affine_fields():
+    rng = np.random.default_rng(1)
+    ctrl = rng.uniform(0, 50, (30, 2))
+    A = rng.normal(size=(2, 2))
+    f = lambda p: p @ A.T + [3.0, -1.0]  # noqa: E731
+    pts = rng.uniform(0, 50, (100, 2))
+    assert np.allclose(TPS(ctrl)(pts, f(ctrl)), f(pts), atol=1e-9)
+
+
+@pytest.mark.parametrize("scale", [0.3, 1.0])
+def test_fast_warp_within_a_tenth_of_a_pixel_of_exact_tps(scale):
+    H, W = 256, 200
+    ctrl = _control(H, W)
+    vals = _indentation_field(ctrl, scale)
+    roi = WarpGrid(20, 10, 180, 170)
+    fast = FastWarp(TPS(ctrl), (H, W), roi).inverse(vals)
+    rbf = RBFInterpolator(ctrl, vals, kernel="thin_plate_spline")
+    exact = exact_inverse(rbf, (H, W), roi)
+    assert np.abs(fast - exact).max() < 0.1
+
+
+def test_warp_moves_a_pattern_as_the_displacement_says():
+    """A uniform shift of (+3.5 col, -6.25 row) px: the warped source equals the shifted target."""
+    H, W = 120, 100
+    rng = np.random.default_rng(3)
+    src = gaussian_filter(rng.random((H, W)), 2.0)
+    ctrl = _control(H, W, 10.0)
+    vals = np.tile([3.5, -6.25], (len(ctrl), 1))
+    roi = WarpGrid(15, 15, 85, 95)
+    warped = FastWarp(TPS(ctrl), (H, W), roi)(src, vals)
+    # W(q) = S(q - delta): compare with an exact sub-pixel shift of the source
+    from scipy.ndimage import shift
+
+    expected = shift(src, (-6.25, 3.5), order=3)[15:95, 15:85]
+    assert np.abs(warped - expected).max() < 0.02 * np.ptp(src)
