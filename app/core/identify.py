@@ -110,7 +110,7 @@ class Problem:
 
     # --- construction -----------------------------------------------------
     @classmethod
-    def from_experiment(cls, exp, *, mesh: TetMesh | None = None, mesh_settings: MeshSettings = MeshSettings(),
+    def from_experiment(cls, exp, *, mesh: TetMesh | None = None, mesh_settings: MeshSettings | None = None,
                         roi_px=None, frames=None, cost: str = "joint", nu: float = 0.49,
                         boundary: Boundary = Boundary(), force_weight: float = 1.0, bins: int = 32,
                         progress: Callable[[str], None] | None = None,
@@ -338,12 +338,17 @@ def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | Non
              max_evaluations: int = 200, xatol: float = 2e-3, fatol: float = 1e-6) -> Result:
     """Multi-start Nelder-Mead in log-moduli. Each start sets every free modulus to
     the start value (the paper's starts: 10, 20, ..., 60 kPa). ``fixed`` holds
-    parameters kept at given values. Reports every evaluation to ``progress``."""
+    parameters kept at given values. Reports every evaluation to ``progress``.
+
+    With the image-only cost the overall level is not identifiable (the cost is
+    exactly invariant to scaling all moduli), so the first free modulus stays at
+    the start value and only the ratios are searched."""
     t0 = time.perf_counter()
     fixed = dict(fixed or {})
     free = [n for n in problem.parameter_names if n not in fixed]
     if not free:
         raise ElastoidError("every parameter is fixed: nothing to identify")
+    ratio_only = problem.cost_kind == "nmi" and len(free) > 1 and not fixed
     lo, hi = np.log(BOUNDS_KPA)
     history: list[EvalReport] = []
     per_start = []
@@ -351,31 +356,34 @@ def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | Non
     total_evals = 0
     for k, s in enumerate(starts_kPa):
         count = [0]
+        anchor = {free[0]: float(s)} if ratio_only else {}
+        search = free[1:] if ratio_only else free
+
+        def params_of(x):
+            xc = np.clip(x, lo, hi)
+            params = dict(fixed)
+            params.update(anchor)
+            params.update({n: float(math.exp(v)) for n, v in zip(search, xc)})
+            return {n: params[n] for n in problem.parameter_names}, xc
 
         def f(x, k=k):
             if cancel is not None and cancel.is_set():
                 raise Cancelled("identification cancelled")
-            xc = np.clip(x, lo, hi)
-            params = dict(fixed)
-            params.update({n: float(math.exp(v)) for n, v in zip(free, xc)})
-            params = {n: params[n] for n in problem.parameter_names}
+            params, xc = params_of(x)
             cost = problem.evaluate(params)
-            penalty = float(np.sum((x - xc) ** 2))
             count[0] += 1
             rep = EvalReport(k, count[0], params, cost)
             history.append(rep)
             if progress:
                 progress(rep)
-            return cost["total"] + penalty
+            return cost["total"] + float(np.sum((x - xc) ** 2))
 
-        x0 = np.full(len(free), math.log(s))
-        simplex = np.vstack([x0] + [x0 + 0.3 * np.eye(len(free))[i] for i in range(len(free))])
+        x0 = np.full(len(search), math.log(s))
+        simplex = np.vstack([x0] + [x0 + 0.3 * np.eye(len(search))[i] for i in range(len(search))])
         res = minimize(f, x0, method="Nelder-Mead",
                        options={"initial_simplex": simplex, "xatol": xatol, "fatol": fatol,
                                 "maxfev": max_evaluations})
-        params = dict(fixed)
-        params.update({n: float(math.exp(v)) for n, v in zip(free, np.clip(res.x, lo, hi))})
-        params = {n: params[n] for n in problem.parameter_names}
+        params, _ = params_of(res.x)
         cost = problem.evaluate(params)
         total_evals += count[0]
         per_start.append({"start_kPa": s, "parameters": params, "cost": cost, "evaluations": count[0]})

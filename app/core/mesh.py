@@ -340,6 +340,22 @@ def _orient_and_clean(V: np.ndarray, T: np.ndarray):
     return V[used], remap[T]
 
 
-def specimen_mesh(exp, settings: MeshSettings = MeshSettings(), **kw) -> TetMesh:
-    """Mesh of an experiment's specimen under its probe."""
-    return build_mesh(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions, settings, **kw)
+def auto_settings(size_mm, probe_rect_mm, regions: tuple[Region, ...]) -> MeshSettings:
+    """Edge lengths that resolve the specimen's features: at most 10 mm, an eighth of
+    the smallest box side, and a third of the thinnest region; a quarter of the
+    probe face's short side (at most 2.5 mm) on the probe."""
+    edge = min(10.0, min(size_mm) / 8.0)
+    for r in regions[1:]:
+        lo, hi = r.bounds_mm()
+        edge = min(edge, float(np.min(hi - lo)) / 3.0)
+    x0, x1, y0, y1 = probe_rect_mm
+    probe = min(2.5, min(x1 - x0, y1 - y0) / 4.0, edge)
+    return MeshSettings(edge_mm=round(edge, 3), probe_edge_mm=round(probe, 3))
+
+
+def specimen_mesh(exp, settings: MeshSettings | None = None, **kw) -> TetMesh:
+    """Mesh of an experiment's specimen under its probe (automatic sizes by default)."""
+    rect = exp.probe.face_rect_mm()
+    if settings is None:
+        settings = auto_settings(exp.specimen.size_mm, rect, exp.specimen.regions)
+    return build_mesh(exp.specimen.size_mm, rect, exp.specimen.regions, settings, **kw)

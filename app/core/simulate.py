@@ -11,11 +11,9 @@ from typing import Callable
 import numpy as np
 
 from app.core.experiment import Experiment, ForceLog, Frame, Imaging, Probe, Specimen, write_experiment
-from app.core.fem import interpolation_matrix
-from app.core.forward import build_model
 from app.core.geometry import Region
-from app.core.mesh import MeshSettings, specimen_mesh
-from app.core.ultrasound import Transducer, make_scatterers, render
+from app.core.mesh import MeshSettings
+from app.core.twin import SpecimenTwin
 
 
 def paper_regions() -> tuple[Region, ...]:
@@ -42,7 +40,8 @@ class SyntheticSpec:
     image_shape: tuple = (256, 200)  # rows (depth), columns (lateral)
     pixel_spacing_mm: tuple = (0.2, 0.2)
     force_noise_N: float = 0.02
-    truth_mesh: MeshSettings = field(default_factory=lambda: MeshSettings().with_scale(0.7))
+    truth_mesh: MeshSettings | None = None  # default: the automatic sizes times truth_mesh_scale
+    truth_mesh_scale: float = 0.7
     echogenicity: dict = field(default_factory=lambda: {"A": 1.8})
     scatterer_density_per_mm3: float = 25.0
     seed: int = 0
@@ -82,35 +81,26 @@ def simulate_experiment(out: str | Path, spec: SyntheticSpec = SyntheticSpec(), 
                         progress: Callable[[str], None] | None = None, cancel=None, overwrite: bool = False) -> Path:
     """Write a synthetic experiment folder (format 1) with ``truth.toml`` beside it."""
     say = progress or (lambda s: None)
-    rng = np.random.default_rng(spec.seed)
     exp = _template(spec)
-    say("meshing the truth (finer than identification meshes)")
-    mesh = specimen_mesh(exp, spec.truth_mesh, progress=say, cancel=cancel)
-    say("solving the truth")
-    fe = build_model(mesh)
-    E = [spec.moduli_kPa[r.name] for r in spec.regions]
-    u_per_mm, force_per_mm = fe.solve(E, spec.nu)
-    say("scattering")
-    scat = make_scatterers(exp, rng, spec.depth_mm, spec.scatterer_density_per_mm3, spec.echogenicity)
-    P = interpolation_matrix(fe.space, scat.points_mm)
-    ubar = (P @ u_per_mm).reshape(-1, 3)
+    twin = SpecimenTwin.build(exp, spec.moduli_kPa, nu=spec.nu, mesh_settings=spec.truth_mesh,
+                              mesh_scale=spec.truth_mesh_scale,
+                              image_shape=spec.image_shape, max_travel_mm=spec.depth_mm, seed=spec.seed,
+                              echogenicity=spec.echogenicity, density_per_mm3=spec.scatterer_density_per_mm3,
+                              progress=say, cancel=cancel)
     t, d = protocol(spec)
-    images, frames, ref = {}, [], None
+    images, frames = {}, []
     for k, dk in enumerate(spec.frames_at_mm):
         say(f"rendering frame {k} at {dk:g} mm")
-        img, ref = render(scat.points_mm + dk * ubar, scat.amplitude, exp, dk, spec.image_shape,
-                          reference=ref, rng=rng)
         name = f"images/frame_{k:03d}.png"
-        images[name] = img
-        tk = float(dk / spec.speed_mm_s)
-        frames.append(Frame(name, round(tk, 6), float(dk)))
-    F = force_per_mm * d + spec.force_noise_N * rng.standard_normal(len(t))
+        images[name] = twin.frame(dk)
+        frames.append(Frame(name, round(float(dk / spec.speed_mm_s), 6), float(dk)))
+    F = twin.force_N(d) + spec.force_noise_N * twin.rng.standard_normal(len(t))
     exp = replace(exp, frames=tuple(frames), force_log=ForceLog(t, d, F))
     if spec.reference_method:
         exp = replace(exp, reference={"youngs_modulus_kPa": dict(spec.moduli_kPa), "method": spec.reference_method})
     out = Path(out)
     write_experiment(out, exp, images, overwrite=overwrite)
-    write_truth(out, spec, mesh.n_nodes, mesh.n_tets, force_per_mm)
+    write_truth(out, spec, twin.mesh_nodes, twin.mesh_tets, twin.force_N_per_mm)
     say(f"wrote {out}")
     return out
 
@@ -121,8 +111,7 @@ def write_truth(out: Path, spec: SyntheticSpec, n_nodes: int, n_tets: int, force
 
     doc = {"moduli_kPa": dict(spec.moduli_kPa), "nu": spec.nu, "effects": list(effects),
            "seed": spec.seed, "force_noise_N": spec.force_noise_N,
-           "truth_mesh": {"nodes": n_nodes, "tetrahedra": n_tets, "edge_mm": spec.truth_mesh.edge_mm,
-                          "probe_edge_mm": spec.truth_mesh.probe_edge_mm},
+           "truth_mesh": {"nodes": n_nodes, "tetrahedra": n_tets},
            "force_N_per_mm": force_per_mm}
     if extra:
         doc.update(extra)

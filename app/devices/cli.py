@@ -200,6 +200,12 @@ def run_acquire(args) -> int:
     rig = Rig(stage, sensor, limits=limits, sample_rate_hz=args.rate_hz)
     if args.images is not None:
         rig.images = FolderWatcher(args.images)
+    elif args.sim_images and args.template:
+        # the simulated scanner: B-mode frames of the template specimen's finite-element twin
+        from app.devices.sim import specimen_twin
+
+        twin = specimen_twin(args.template, progress=lambda s: print(f"elastoid acquire: {s}", file=err))
+        rig.images = SimulatedImageSource(twin.frame, lambda: rig.displacement_mm() or 0.0)
     elif args.sim_images:
         roi = template.imaging.roi_px
         shape = (max(128, roi[3] if roi else 0), max(128, roi[2] if roi else 0))

@@ -1,5 +1,6 @@
 """app.devices stays Qt-free and below the GUI: it imports only numpy/scipy/pyserial-level
-libraries and, from app.core, only the experiment format and the errors."""
+libraries and, from app.core, only the experiment format, the errors and (for the
+simulated rig) the specimen twin built on the forward model."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 DEVICES = ROOT / "app" / "devices"
 FORBIDDEN = ("PySide6", "PyQt5", "PyQt6", "qtpy", "pyqtgraph", "pyvistaqt", "app.gui", "app.cli")
-ALLOWED_CORE = ("app.core.experiment", "app.core.errors")
+ALLOWED_CORE = ("app.core.experiment", "app.core.errors", "app.core.twin")
 
 
 def _imports(path: Path):

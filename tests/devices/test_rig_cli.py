@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from app.core.errors import ElastoidError
+
 from app.core.experiment import read_experiment
 from app.devices.cli import add_acquire_parser, add_rig_parser, main
 from app.devices.sim import NonlinearSpring, ViscoelasticSpring, specimen_force_model
@@ -55,9 +57,9 @@ def test_rig_and_acquire_end_to_end(tmp_path):
         exp = read_experiment(tmp_path / "rec")
         assert [round(f.displacement_mm, 1) for f in exp.frames] == [0.0, 0.5, 1.0]
         assert exp.force_log.force_N.max() == pytest.approx(1.0 + 0.05, abs=0.1)
-        # the recording describes a specimen the simulated rig can press against in turn
-        model = specimen_force_model(tmp_path / "rec", ("viscoelastic",))
-        assert isinstance(model, ViscoelasticSpring) and 0.8 < model.spring.k_N_per_mm < 1.4
+        # a recording has no moduli (no truth.toml, no [reference]): the simulated rig says so
+        with pytest.raises(ElastoidError, match="truth.toml nor \\[reference\\]"):
+            specimen_force_model(tmp_path / "rec", ("viscoelastic",))
         # a second recording into the same folder is refused before anything moves
         again = subprocess.run(_acquire(ports, tmp_path / "rec"), cwd=ROOT, env=ENV, capture_output=True,
                                text=True, timeout=30)

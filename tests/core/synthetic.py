@@ -1,0 +1,27 @@
+"""Synthetic experiments for identification tests: truth on a finer mesh, frames
+from the scatterer simulator, noisy force (never the identifier's own forward model)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from app.core.geometry import Region
+from app.core.simulate import SyntheticSpec, simulate_experiment
+
+GEOMETRIES = {
+    # a stiff sphere (the paper's case, scaled down so tests stay fast)
+    "sphere": dict(size_mm=(40.0, 40.0, 30.0),
+                   regions=(Region("B", "background"), Region("A", "sphere", center_mm=(20.0, 20.0, 18.0), radius_mm=7.0)),
+                   moduli_kPa={"B": 15.0, "A": 45.0}),
+    # a soft, flat, off-centre ellipsoid
+    "ellipsoid": dict(size_mm=(44.0, 40.0, 32.0),
+                      regions=(Region("B", "background"),
+                               Region("A", "ellipsoid", center_mm=(24.0, 20.0, 19.0), radii_mm=(9.0, 7.0, 5.0))),
+                      moduli_kPa={"B": 24.0, "A": 9.0}),
+}
+COMMON = dict(face_mm=(24.0, 8.0), depth_mm=5.0, frames_at_mm=(0.0, 2.5, 5.0), image_shape=(128, 120))
+
+
+def make(folder: Path, geometry: str, seed: int, **overrides) -> tuple[Path, SyntheticSpec]:
+    spec = SyntheticSpec(seed=seed, **{**COMMON, **GEOMETRIES[geometry], **overrides})
+    return simulate_experiment(folder, spec, overwrite=True), spec
