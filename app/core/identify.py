@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 from scipy.optimize import minimize
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from app.core.errors import Cancelled, ElastoidError
 from app.core.forward import Boundary, FEModel, ReducedModel, build_model, region_terms, training_set
@@ -31,6 +31,16 @@ PAPER_STARTS_KPA = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
 BOUNDS_KPA = (0.1, 1e4)
 CONTROL_SPACING_MM = 2.0
 DISPLACEMENT_NOISE_PX = 0.25  # stated noise model of the image term (speckle-tracking precision)
+_POOLS: ThreadpoolController | None = None
+
+
+def single_threaded_blas():
+    """Context capping BLAS at one thread: in these small products idle BLAS threads
+    only steal the cores (the controller is built once: building it scans the process)."""
+    global _POOLS
+    if _POOLS is None:
+        _POOLS = ThreadpoolController()
+    return _POOLS.limit(limits=1, user_api="blas")
 
 
 @dataclass(frozen=True)
@@ -134,7 +144,7 @@ class Problem:
         if cancel is not None and cancel.is_set():
             raise Cancelled("cancelled")
         say("training the reduced model")
-        with threadpool_limits(limits=1, user_api="blas"):
+        with single_threaded_blas():
             rm = ReducedModel(fe, region_terms(len(mesh.region_names), nu))
             rm.train(training_set(len(mesh.region_names)))
         say(f"reduced model: {rm.V.shape[1]} basis vectors")
@@ -175,7 +185,25 @@ class Problem:
         return np.column_stack([col, row])
 
     def _coarse_field(self, pair: _FramePair, a: np.ndarray) -> np.ndarray:
-        return pair.warp.forward_coarse(self.control_displacement_px(a, pair))
+        """Forward displacement (px) on the warp's coarse source grid. The chain
+        reduced coordinates -> control points -> TPS on the grid is linear, so it is
+        precomposed into one small matrix per frame pair (rebuilt if the basis grows)."""
+        key = (id(pair), self.rm.k)
+        cache = self.__dict__.setdefault("_G", {})
+        if key not in cache:
+            self._pointop.values(np.zeros(self.rm.k))  # make sure B matches the basis
+            B = self._pointop.B.reshape(-1, 3, self.rm.k)  # (n_ctrl, xyz, k) per mm
+            l = self._pointop.lift_part.reshape(-1, 3)
+            Bc = np.einsum("nck,c->nk", B, self._lat) / self._sc
+            Br = -B[:, 2, :] / self._sr
+            lc = (l @ self._lat) / self._sc
+            lr = (-1.0 - l[:, 2]) / self._sr
+            M = pair.warp.M
+            cache[key] = (M @ Bc, M @ Br, M @ lc, M @ lr)
+        Gc, Gr, gc, gr = cache[key]
+        dd = pair.d_target_mm - pair.d_source_mm
+        shape = (len(pair.warp.src_rows), len(pair.warp.src_cols))
+        return np.stack([(dd * (Gc @ a + gc)).reshape(shape), (dd * (Gr @ a + gr)).reshape(shape)], axis=-1)
 
     def model_force_N(self, params: dict, a=None) -> np.ndarray:
         theta = self.theta(params)
@@ -191,7 +219,7 @@ class Problem:
 
     def evaluate(self, params: dict) -> dict:
         """Cost parts: total, nmi (mean over frame pairs, in [1, 2]), force_rms_N."""
-        with threadpool_limits(limits=1, user_api="blas"):
+        with single_threaded_blas():
             theta = self.theta(params)
             a = self.rm.coords(theta)
             vals = []

@@ -24,7 +24,7 @@ import numpy as np
 from app.core.errors import Cancelled, MeshingError
 from app.core.geometry import Region, box_surface, paint_labels
 
-MESH_VERSION = 5  # bump when meshing changes, to invalidate caches
+MESH_VERSION = 7  # bump when meshing changes, to invalidate caches
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,7 @@ class MeshSettings:
     probe_edge_mm: float = 2.5
     grading: float = 0.35
     epsilon: float = 5e-4  # fTetWild envelope, relative to the bounding box diagonal
-    region_edge_mm: float | None = None  # size on region surfaces (default: between the two)
+    region_edge_mm: float | None = None  # size in and around regions (default: a fifth of their thinnest extent)
 
     def with_scale(self, factor: float) -> "MeshSettings":
         """Every length multiplied by ``factor`` (< 1 refines)."""
@@ -159,17 +159,21 @@ def input_surface(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings:
     verts, faces = box_surface((0, 0, 0), size_mm, settings.edge_mm, top_lines=top)
     vs, fs = [verts], [faces]
     n = len(verts)
-    redge = settings.region_edge_mm or 0.5 * (settings.edge_mm + settings.probe_edge_mm)
     for r in regions[1:]:
-        lo, hi = r.bounds_mm()
-        v, f = r.surface(edge_mm=min(redge, 4.0, 0.15 * float(np.min(hi - lo))))
+        v, f = r.surface(edge_mm=min(4.0, 0.75 * region_edge_mm(r, settings)))
         vs.append(v)
         fs.append(f + n)
         n += len(v)
     return np.vstack(vs), np.vstack(fs)
 
 
-def sizing_field(size_mm, probe_rect_mm, settings: MeshSettings):
+def region_edge_mm(region: Region, settings: MeshSettings) -> float:
+    lo, hi = region.bounds_mm()
+    own = 0.2 * float(np.min(hi - lo))
+    return min(settings.edge_mm, settings.region_edge_mm or own)
+
+
+def sizing_field(size_mm, probe_rect_mm, settings: MeshSettings, regions: tuple[Region, ...] = ()):
     """Background tets with the target edge length at their vertices (mm)."""
     sx, sy, sz = size_mm
     step = max(settings.probe_edge_mm, min(size_mm) / 24)
@@ -188,6 +192,11 @@ def sizing_field(size_mm, probe_rect_mm, settings: MeshSettings):
     dy = np.maximum(np.maximum(y0 - pts[:, 1], pts[:, 1] - y1), 0)
     dz = sz - pts[:, 2]
     h = np.minimum(settings.probe_edge_mm + settings.grading * np.sqrt(dx**2 + dy**2 + dz**2), settings.edge_mm)
+    # resolve each region's strain field: small elements in and around it, graded outward
+    for r in regions[1:]:
+        lo, hi = r.bounds_mm()
+        d = np.linalg.norm(np.maximum(np.maximum(lo - pts, pts - hi), 0.0), axis=1)
+        h = np.minimum(h, region_edge_mm(r, settings) + settings.grading * d)
     return pts, tets, h
 
 
@@ -248,12 +257,14 @@ def build_mesh(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: Me
         except (OSError, ValueError, KeyError):
             path.unlink(missing_ok=True)
     v, f = input_surface(size_mm, probe_rect_mm, regions, settings)
-    bg_v, bg_t, bg_h = sizing_field(size_mm, probe_rect_mm, settings)
+    bg_v, bg_t, bg_h = sizing_field(size_mm, probe_rect_mm, settings, regions)
     if progress:
         progress(f"meshing: {len(f)} input triangles")
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    threads = int(os.environ.get("ELASTOID_MESH_THREADS", "0"))
+    # one thread: fTetWild's multi-threaded runs differ from run to run, and a
+    # scientific result must not depend on thread timing
+    threads = int(os.environ.get("ELASTOID_MESH_THREADS", "1"))
     proc = ctx.Process(target=_tetwild_job, args=((v, f, bg_v, bg_t, bg_h, settings.edge_mm, settings.epsilon, threads), queue),
                        daemon=True)
     proc.start()
@@ -342,14 +353,15 @@ def _orient_and_clean(V: np.ndarray, T: np.ndarray):
 
 def auto_settings(size_mm, probe_rect_mm, regions: tuple[Region, ...]) -> MeshSettings:
     """Edge lengths that resolve the specimen's features: at most 10 mm, an eighth of
-    the smallest box side, and a third of the thinnest region; a quarter of the
-    probe face's short side (at most 2.5 mm) on the probe."""
+    the smallest box side, and a third of the thinnest region; a fifth of the
+    probe face's short side (at most 2.5 mm) on the probe; inside and around each
+    region a fifth of its thinnest extent (see :func:`region_edge_mm`)."""
     edge = min(10.0, min(size_mm) / 8.0)
     for r in regions[1:]:
         lo, hi = r.bounds_mm()
         edge = min(edge, float(np.min(hi - lo)) / 3.0)
     x0, x1, y0, y1 = probe_rect_mm
-    probe = min(2.5, min(x1 - x0, y1 - y0) / 4.0, edge)
+    probe = min(2.5, min(x1 - x0, y1 - y0) / 5.0, edge)
     return MeshSettings(edge_mm=round(edge, 3), probe_edge_mm=round(probe, 3))
 
 

@@ -2,7 +2,7 @@
 
 The FE displacement, sampled at control points on the image plane, is carried
 to pixels by a thin-plate spline (TPS). The exact TPS is :class:`TPS`; the fast
-path evaluates that same TPS on a coarse pixel grid (every ``step`` pixels)
+path evaluates that same TPS on a coarse pixel grid (every ``step`` pixels, 3 by default)
 and upsamples it with separable cubic interpolation. Because the TPS is linear
 in the control values, the whole chain is a few small matrix products per
 evaluation. Its error against the exact TPS on every pixel is measured in the
@@ -147,7 +147,7 @@ class FastWarp:
     upsampled to every ROI pixel with separable cubic interpolation.
     """
 
-    def __init__(self, tps: TPS, image_shape: tuple[int, int], roi: WarpGrid, step: int = 4, iterations: int = 10):
+    def __init__(self, tps: TPS, image_shape: tuple[int, int], roi: WarpGrid, step: int = 3, iterations: int = 10):
         H, W = image_shape
         self.step, self.iterations, self.roi = step, iterations, roi
         self.src_rows = np.arange(0, H - 1 + step, step, dtype=float)

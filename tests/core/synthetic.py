@@ -21,6 +21,20 @@ GEOMETRIES = {
 }
 COMMON = dict(face_mm=(24.0, 8.0), depth_mm=5.0, frames_at_mm=(0.0, 2.5, 5.0), image_shape=(128, 120))
 
+# Mid-size specimens for the identification tests: the small ones above carry too
+# little image information (about 10k ROI pixels) to fix a ratio within 5%; the
+# paper-size demo has 31k. These have about 25k and stay fast enough for CI.
+_MEDIUM = dict(face_mm=(32.0, 10.0), depth_mm=8.0, frames_at_mm=(0.0, 4.0, 8.0), image_shape=(200, 160))
+GEOMETRIES["medium-sphere"] = dict(
+    size_mm=(60.0, 60.0, 50.0), moduli_kPa={"B": 15.0, "A": 45.0},
+    regions=(Region("B", "background"), Region("A", "sphere", center_mm=(30.0, 30.0, 32.0), radius_mm=10.0)),
+    **_MEDIUM)
+GEOMETRIES["medium-ellipsoid"] = dict(
+    size_mm=(64.0, 60.0, 50.0), moduli_kPa={"B": 24.0, "A": 9.0},
+    regions=(Region("B", "background"),
+             Region("A", "ellipsoid", center_mm=(34.0, 30.0, 32.0), radii_mm=(12.0, 10.0, 8.0))),
+    **_MEDIUM)
+
 
 def make(folder: Path, geometry: str, seed: int, **overrides) -> tuple[Path, SyntheticSpec]:
     spec = SyntheticSpec(seed=seed, **{**COMMON, **GEOMETRIES[geometry], **overrides})

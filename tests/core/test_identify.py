@@ -11,7 +11,7 @@ from app.core.experiment import read_experiment
 from app.core.identify import Problem, identify
 from tests.core import synthetic
 
-CASES = [("sphere", 1), ("sphere", 2), ("ellipsoid", 3)]
+CASES = [("medium-sphere", 1), ("medium-sphere", 2), ("medium-ellipsoid", 3)]
 
 
 @pytest.fixture(scope="module", params=CASES, ids=[f"{g}-seed{s}" for g, s in CASES])

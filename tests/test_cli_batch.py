@@ -1,0 +1,57 @@
+"""The batch command line: simulate, identify, their JSON, and clear errors."""
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from app.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_simulate_then_identify_json_follows_the_contract(tmp_path, capsys):
+    out = tmp_path / "exp"
+    assert main(["simulate", str(out), "--size-mm", "40,40,30", "--inclusion", "sphere:20,20,18,7",
+                 "--moduli", "B=15,A=45", "--face-mm", "24,8", "--depth-mm", "5", "--frames-at", "0,2.5,5",
+                 "--rows", "128", "--cols", "120", "--seed", "1", "--quiet"]) == 0
+    assert (out / "truth.toml").is_file() and (out / "experiment.toml").is_file()
+    capsys.readouterr()
+    assert main(["identify", str(out), "--json", "-", "--starts", "10,30", "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert set(result) >= {"experiment", "effects", "parameters", "cost", "evaluations", "seconds"}
+    assert result["effects"] == []
+    assert set(result["parameters"]) == {"E_B_kPa", "E_A_kPa"}
+    assert set(result["cost"]) >= {"total", "nmi", "force_rms_N"}
+    assert 1.0 <= result["cost"]["nmi"] <= 2.0
+    assert result["evaluations"] > 10 and result["seconds"] > 0
+    assert all(math.isfinite(v) for v in result["parameters"].values())
+
+
+def test_demo_identification_finds_the_reference_moduli(tmp_path, capsys):
+    """The README's main job: the paper-like demo, joint cost, the paper's six starts."""
+    dest = tmp_path / "result.json"
+    assert main(["identify", str(ROOT / "resources" / "demo"), "--json", str(dest), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "E_A_kPa" in printed and "reference 63.0 kPa" in printed
+    result = json.loads(dest.read_text())
+    assert result["parameters"]["E_B_kPa"] == pytest.approx(18.0, rel=0.05)
+    assert result["parameters"]["E_A_kPa"] == pytest.approx(63.0, rel=0.05)
+    assert len(result["starts"]) == 6
+
+
+def test_bad_experiment_gives_a_message_naming_file_and_field(tmp_path, capsys):
+    assert main(["identify", str(tmp_path / "nothing")]) == 2
+    assert "nothing" in capsys.readouterr().err
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "experiment.toml").write_text('format = "elastoid-experiment/1"\n[specimen]\nsize_mm = [1, -2, 3]\n')
+    assert main(["identify", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "experiment.toml" in err and "specimen.size_mm" in err and "Traceback" not in err
+
+
+def test_unknown_or_unavailable_effect_is_refused(capsys):
+    assert main(["identify", str(ROOT / "resources" / "demo"), "--effects", "magic"]) == 2
+    assert "unknown effect 'magic'" in capsys.readouterr().err
