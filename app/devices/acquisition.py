@@ -869,8 +869,12 @@ class Rig:
             d = s.displacement_now()
             while frames_todo and (d >= frames_todo[0] - 1e-3 or final):
                 frames_todo.pop(0)
+                # the frame shows the probe where it was when the frame was taken, not
+                # where it is once the frame has arrived (the stage keeps moving)
+                t_frame, d_frame = self.clock.now() - s.t0, s.displacement_now()
                 img = self.images.frame()
-                recorder.add_frame(img.pixels, self.clock.now() - s.t0, s.displacement_now())
+                d_meta = img.metadata.get("displacement_mm")
+                recorder.add_frame(img.pixels, t_frame, d_frame if d_meta is None else float(d_meta))
                 if final:
                     break
 

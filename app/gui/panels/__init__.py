@@ -1,0 +1,1 @@
+"""One panel per module; each takes its model(s) and never reaches into another panel."""

@@ -1,0 +1,95 @@
+"""Small widgets the panels share."""
+
+from __future__ import annotations
+
+import numpy as np
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import QDoubleSpinBox, QFrame, QHBoxLayout, QLabel, QSpinBox, QWidget
+
+
+def spin(lo: float, hi: float, value: float, *, decimals: int = 2, step: float = 1.0, suffix: str = "",
+         tip: str = "") -> QDoubleSpinBox:
+    s = QDoubleSpinBox()
+    s.setRange(lo, hi)
+    s.setDecimals(decimals)
+    s.setSingleStep(step)
+    s.setValue(value)
+    s.setKeyboardTracking(False)
+    if suffix:
+        s.setSuffix(f" {suffix}")
+    if tip:
+        s.setToolTip(tip)
+    s.setAlignment(Qt.AlignRight)
+    return s
+
+
+def ispin(lo: int, hi: int, value: int, *, suffix: str = "", tip: str = "") -> QSpinBox:
+    s = QSpinBox()
+    s.setRange(lo, hi)
+    s.setValue(value)
+    s.setKeyboardTracking(False)
+    if suffix:
+        s.setSuffix(f" {suffix}")
+    if tip:
+        s.setToolTip(tip)
+    s.setAlignment(Qt.AlignRight)
+    return s
+
+
+def hint(text: str) -> QLabel:
+    lab = QLabel(text)
+    lab.setObjectName("hint")
+    lab.setWordWrap(True)
+    return lab
+
+
+def hline() -> QFrame:
+    f = QFrame()
+    f.setFrameShape(QFrame.HLine)
+    f.setFrameShadow(QFrame.Sunken)
+    return f
+
+
+def row(*widgets, stretch: bool = True) -> QWidget:
+    w = QWidget()
+    lay = QHBoxLayout(w)
+    lay.setContentsMargins(0, 0, 0, 0)
+    for x in widgets:
+        if isinstance(x, str):
+            x = QLabel(x)
+        lay.addWidget(x)
+    if stretch:
+        lay.addStretch(1)
+    return w
+
+
+def normalized(img: np.ndarray, lo_pct: float = 1.0, hi_pct: float = 99.0) -> np.ndarray:
+    """Grey levels scaled to [0, 1] between two percentiles (robust to speckle outliers)."""
+    a = np.asarray(img, float)
+    finite = a[np.isfinite(a)]
+    if finite.size == 0:
+        return np.zeros_like(a)
+    lo, hi = np.percentile(finite, [lo_pct, hi_pct])
+    if hi <= lo:
+        hi = lo + 1.0
+    return np.clip((a - lo) / (hi - lo), 0.0, 1.0)
+
+
+def red_green(target: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """The subtraction view: target in red, source in green; where they agree the pixel turns yellow."""
+    t, s = normalized(target), normalized(source)
+    rgb = np.zeros(t.shape + (3,), np.uint8)
+    rgb[..., 0] = np.round(255 * t)
+    rgb[..., 1] = np.round(255 * s)
+    return rgb
+
+
+def diverging_lut(n: int = 256) -> np.ndarray:
+    """Blue - white - red lookup table (n, 3) uint8 for signed differences."""
+    x = np.linspace(-1, 1, n)
+    r = np.where(x < 0, 1 + x, 1.0)
+    b = np.where(x > 0, 1 - x, 1.0)
+    g = 1 - np.abs(x)
+    lut = np.stack([r, g, b], axis=1)
+    lut = 0.15 + 0.85 * lut  # keep the ends from going black
+    return np.round(255 * np.clip(lut, 0, 1)).astype(np.uint8)
