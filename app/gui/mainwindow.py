@@ -208,6 +208,12 @@ class MainWindow(QMainWindow):
         self.act_save = self._action("&Save session", self.save_session, QKeySequence.Save,
                                      "Save the ROI, mesh settings and results as a session file")
         self.act_save_as = self._action("Save session &as...", self.save_session_as, "Ctrl+Shift+S")
+        self.act_export_report = self._action("Export &report (HTML)...", lambda: self.export("report"), "Ctrl+E",
+                                              "The parameters with their uncertainties, the force, the overlays")
+        self.act_export_vtu = self._action("Export calibrated model (&VTU)...", lambda: self.export("vtu"), None,
+                                           "The mesh with region labels and moduli, for simulators")
+        self.act_export_feb = self._action("Export &FEBio input (.feb)...", lambda: self.export("feb"), None,
+                                           "The calibrated model as an FEBio 4 input file")
         self.act_quit = self._action("&Quit", self.close, QKeySequence.Quit)
         self.act_stop = self._action("STOP", self.emergency_stop, None,
                                      "Emergency stop: halt the stage at once (Esc)")
@@ -231,6 +237,9 @@ class MainWindow(QMainWindow):
         self.recent_menu.aboutToShow.connect(self._fill_recent)
         f.addSeparator()
         for a in (self.act_open_session, self.act_save, self.act_save_as):
+            f.addAction(a)
+        f.addSeparator()
+        for a in (self.act_export_report, self.act_export_vtu, self.act_export_feb):
             f.addAction(a)
         f.addSeparator()
         f.addAction(self.act_quit)
@@ -369,6 +378,49 @@ class MainWindow(QMainWindow):
         if self.session.session_path is None:
             return self.save_session_as()
         return self._save_to(self.session.session_path)
+
+    _EXPORTS = {"report": ("Export the report", "report.html", "HTML (*.html)"),
+                "vtu": ("Export the calibrated model", "model.vtu", "VTK unstructured grid (*.vtu)"),
+                "feb": ("Export an FEBio input", "model.feb", "FEBio input (*.feb)")}
+
+    def export(self, kind: str, path: Path | None = None) -> Path | None:
+        """Write the report or the calibrated model; asks for a file unless ``path`` is given."""
+        from app.core import export as ex
+
+        s = self.session
+        if s.outcome is None or s.mesh is None:
+            self._status("run an identification first: the exports hold its result")
+            return None
+        if path is None:
+            title, name, filt = self._EXPORTS[kind]
+            start = QSettings().value("paths/last_export_dir", str(Path.home()), str)
+            chosen, _ = QFileDialog.getSaveFileName(self, title, str(Path(start) / name), filt)
+            if not chosen:
+                return None
+            path = Path(chosen)
+            QSettings().setValue("paths/last_export_dir", str(path.parent))
+        nu = s.identification.nu
+        try:
+            if kind == "report":
+                overlays = []
+                if s.overlay is not None:
+                    warped, target = s.overlay[0], s.overlay[1]
+                    overlays.append((f"frame {s.target_frame}", warped, target))
+                o = s.outcome
+                ex.write_report_html(path, experiment=s.experiment, parameters=o.parameters, cost=o.cost,
+                                     standard_error_rel=o.standard_error_rel, identifiability_lines=o.identifiability,
+                                     model_force_N=s.model_force_N, overlays=overlays,
+                                     mesh_lines=s.mesh_quality, nu=nu)
+            elif kind == "vtu":
+                ex.write_vtu(path, s.mesh, s.outcome.parameters, nu)
+            else:
+                d = max(f.displacement_mm for f in s.experiment.frames)
+                ex.write_feb(path, s.mesh, s.outcome.parameters, nu, probe_travel_mm=d)
+        except Exception as exc:
+            self._error(exc)
+            return None
+        self._status(f"wrote {path}")
+        return path
 
     def save_session_as(self) -> bool:
         if not self.session.has_experiment:

@@ -59,6 +59,16 @@ def test_run_to_the_end(make_window, tiny_experiment, qtbot, tmp_path):
     table = other.identification_panel.table
     assert table.item(1, col).text() == values["E_A_kPa"]
     assert "Identifiability" in other.identification_panel.report.toPlainText()
+    # the report and the calibrated model are exported from the window
+    report_file = window.export("report", tmp_path / "report.html")
+    html = report_file.read_text()
+    assert values["E_A_kPa"] in html and "data:image/png;base64," in html and html.count("<polyline") == 2
+    import meshio
+
+    vtu = meshio.read(window.export("vtu", tmp_path / "model.vtu"))
+    assert set(np.round(vtu.cell_data["E_kPa"][0], 6)) == {round(v, 6) for v in out.parameters.values()}
+    feb = window.export("feb", tmp_path / "model.feb").read_text(encoding="iso-8859-1")
+    assert '<febio_spec version="4.0">' in feb and feb.count("<SolidDomain") == 2
 
 
 def test_cancel_a_running_identification(window, tiny_experiment, qtbot):

@@ -264,6 +264,7 @@ class SessionModel:
         self.outcome = None
         self.overlay = None
         self.deformed = None
+        self.model_force_N = None
         self.session_path = None
         self.experiment_changed.emit()
 
@@ -407,6 +408,7 @@ class SessionModel:
         self.overlay_changed.emit()
 
     def _invalidate_result(self) -> None:
+        self.model_force_N = None
         if self.outcome is not None or self.overlay is not None or self.deformed is not None:
             self.outcome = None
             self.overlay = None

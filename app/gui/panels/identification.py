@@ -617,6 +617,7 @@ class IdentificationPanel(Panel):
         s.set_outcome(result.outcome, result.overlay, result.deformed)
         if result.force is not None:
             t, measured, model = result.force
+            s.model_force_N = model  # kept for the report
             d = s.experiment.force_log.displacement_mm
             self.force_plot.plot(d, measured, pen=pg.mkPen("#8a8a8a", width=1), name="measured")
             self.force_plot.plot(d, model, pen=pg.mkPen("#d55e00", width=2), name="model")

@@ -1,0 +1,204 @@
+"""Exports of a calibrated model and of an identification report.
+
+- VTU (through meshio): the tetrahedral mesh with region label, Young's
+  modulus (kPa) and Poisson's ratio per cell, for visualization and for the
+  simulators that read VTK.
+- FEBio input (.feb, FEBio 4 format): one isotropic elastic material and one
+  solid domain per region; the paper's boundary conditions (bottom fixed, probe
+  face bonded and pushed down). Units: mm, N, MPa (E_MPa = E_kPa / 1000).
+- HTML report: parameters with their uncertainties and references, the cost,
+  the identifiability report, the force curve (inline SVG) and the overlays
+  (inline PNG).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from datetime import datetime
+from pathlib import Path
+from xml.etree import ElementTree as ET
+
+import numpy as np
+
+from app.core.mesh import TetMesh
+
+
+def region_moduli(mesh: TetMesh, parameters: dict) -> np.ndarray:
+    """E (kPa) of each region of the mesh from ``E_<region>_kPa`` parameters."""
+    try:
+        return np.array([float(parameters[f"E_{n}_kPa"]) for n in mesh.region_names])
+    except KeyError as exc:
+        raise ValueError(f"no modulus for region {exc.args[0][2:-4]!r} among {sorted(parameters)}") from None
+
+
+def write_vtu(path: str | Path, mesh: TetMesh, parameters: dict, nu: float = 0.49) -> Path:
+    import meshio
+
+    E = region_moduli(mesh, parameters)
+    cells = [("tetra", mesh.tets.astype(np.int64))]
+    data = {"region": [mesh.labels.astype(np.int32)], "E_kPa": [E[mesh.labels]],
+            "nu": [np.full(mesh.n_tets, float(nu))]}
+    meshio.write(str(path), meshio.Mesh(mesh.points_mm, cells, cell_data=data), file_format="vtu")
+    return Path(path)
+
+
+def write_feb(path: str | Path, mesh: TetMesh, parameters: dict, nu: float = 0.49,
+              probe_travel_mm: float = 1.0, steps: int = 10) -> Path:
+    """FEBio 4 input: static solid analysis of the indentation by ``probe_travel_mm``."""
+    E = region_moduli(mesh, parameters)
+    root = ET.Element("febio_spec", version="4.0")
+    ET.SubElement(root, "Module", type="solid")
+    ctrl = ET.SubElement(root, "Control")
+    for k, v in (("analysis", "STATIC"), ("time_steps", str(steps)), ("step_size", f"{1.0 / steps:g}")):
+        ET.SubElement(ctrl, k).text = v
+    mats = ET.SubElement(root, "Material")
+    for r, name in enumerate(mesh.region_names):
+        m = ET.SubElement(mats, "material", id=str(r + 1), name=name, type="isotropic elastic")
+        ET.SubElement(m, "density").text = "1"
+        ET.SubElement(m, "E").text = f"{E[r] / 1000.0:.9g}"
+        ET.SubElement(m, "v").text = f"{nu:.6g}"
+    geo = ET.SubElement(root, "Mesh")
+    nodes = ET.SubElement(geo, "Nodes", name="specimen")
+    for i, p in enumerate(mesh.points_mm):
+        ET.SubElement(nodes, "node", id=str(i + 1)).text = ",".join(f"{x:.9g}" for x in p)
+    eid = 1
+    for r, name in enumerate(mesh.region_names):
+        els = ET.SubElement(geo, "Elements", type="tet4", name=name)
+        for t in mesh.tets[mesh.labels == r]:
+            ET.SubElement(els, "elem", id=str(eid)).text = ",".join(str(int(i) + 1) for i in t)
+            eid += 1
+    bottom = np.flatnonzero(mesh.points_mm[:, 2] < 1e-6) + 1
+    probe = np.flatnonzero(mesh.probe_nodes()) + 1
+    ET.SubElement(geo, "NodeSet", name="bottom").text = ",".join(map(str, bottom))
+    ET.SubElement(geo, "NodeSet", name="probe").text = ",".join(map(str, probe))
+    domains = ET.SubElement(root, "MeshDomains")
+    for name in mesh.region_names:
+        ET.SubElement(domains, "SolidDomain", name=name, mat=name)
+    bcs = ET.SubElement(root, "Boundary")
+    fix = ET.SubElement(bcs, "bc", name="table", node_set="bottom", type="zero displacement")
+    for d in ("x_dof", "y_dof", "z_dof"):
+        ET.SubElement(fix, d).text = "1"
+    lat = ET.SubElement(bcs, "bc", name="probe_bonded", node_set="probe", type="zero displacement")
+    for d, v in (("x_dof", "1"), ("y_dof", "1"), ("z_dof", "0")):
+        ET.SubElement(lat, d).text = v
+    push = ET.SubElement(bcs, "bc", name="probe_travel", node_set="probe", type="prescribed displacement")
+    ET.SubElement(push, "dof").text = "z"
+    ET.SubElement(push, "value", lc="1").text = f"{-float(probe_travel_mm):.9g}"
+    ET.SubElement(push, "relative").text = "0"
+    loads = ET.SubElement(root, "LoadData")
+    lc = ET.SubElement(loads, "load_controller", id="1", name="ramp", type="loadcurve")
+    ET.SubElement(lc, "interpolate").text = "LINEAR"
+    pts = ET.SubElement(lc, "points")
+    ET.SubElement(pts, "pt").text = "0,0"
+    ET.SubElement(pts, "pt").text = "1,1"
+    out = ET.SubElement(root, "Output")
+    plot = ET.SubElement(out, "plotfile", type="febio")
+    for v in ("displacement", "stress", "reaction forces"):
+        ET.SubElement(plot, "var", type=v)
+    ET.indent(root)
+    Path(path).write_text('<?xml version="1.0" encoding="ISO-8859-1"?>\n' + ET.tostring(root, encoding="unicode")
+                          + "\n", encoding="iso-8859-1")
+    return Path(path)
+
+
+def overlay_rgb(warped: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The paper's subtraction view: target in red, warped source in green (uint8 RGB)."""
+    def norm(a):
+        a = np.asarray(a, float)
+        lo, hi = np.percentile(a, [1, 99])
+        return np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1)
+
+    rgb = np.zeros(target.shape + (3,))
+    rgb[..., 0] = norm(target)
+    rgb[..., 1] = norm(warped)
+    return (rgb * 255).astype(np.uint8)
+
+
+def _png_b64(rgb: np.ndarray) -> str:
+    import imageio.v3 as iio
+
+    buf = io.BytesIO()
+    iio.imwrite(buf, rgb, extension=".png")
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def _force_svg(d_mm, measured_N, model_N, width=560, height=300) -> str:
+    d = np.asarray(d_mm, float)
+    f = np.asarray(measured_N, float)
+    m = None if model_N is None else np.asarray(model_N, float)
+    xs = (d.min(), d.max() if d.max() > d.min() else d.min() + 1)
+    allf = f if m is None else np.concatenate([f, m])
+    ys = (min(0.0, allf.min()), allf.max() if allf.max() > 0 else 1.0)
+    L, R, T, B = 60, 15, 15, 45
+
+    def px(x, y):
+        return (L + (x - xs[0]) / (xs[1] - xs[0]) * (width - L - R),
+                height - B - (y - ys[0]) / (ys[1] - ys[0]) * (height - T - B))
+
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" '
+             f'font-size="12"><rect width="100%" height="100%" fill="white"/>']
+    x0, y0 = px(xs[0], ys[0])
+    x1, y1 = px(xs[1], ys[1])
+    parts.append(f'<rect x="{x0}" y="{y1}" width="{x1 - x0}" height="{y0 - y1}" fill="none" stroke="#888"/>')
+    for k in range(5):
+        xv = xs[0] + k * (xs[1] - xs[0]) / 4
+        yv = ys[0] + k * (ys[1] - ys[0]) / 4
+        parts.append(f'<text x="{px(xv, ys[0])[0]:.1f}" y="{y0 + 16}" text-anchor="middle">{xv:.3g}</text>')
+        parts.append(f'<text x="{L - 6}" y="{px(xs[0], yv)[1] + 4:.1f}" text-anchor="end">{yv:.3g}</text>')
+    parts.append(f'<text x="{(x0 + x1) / 2}" y="{height - 8}" text-anchor="middle">probe travel (mm)</text>')
+    parts.append(f'<text x="14" y="{(y0 + y1) / 2}" transform="rotate(-90 14 {(y0 + y1) / 2})" '
+                 f'text-anchor="middle">force (N)</text>')
+    step = max(1, len(d) // 800)
+    pts = " ".join(f"{a:.1f},{b:.1f}" for a, b in (px(x, y) for x, y in zip(d[::step], f[::step])))
+    parts.append(f'<polyline points="{pts}" fill="none" stroke="#1f77b4" stroke-width="1.5"/>')
+    if m is not None:
+        pts = " ".join(f"{a:.1f},{b:.1f}" for a, b in (px(x, y) for x, y in zip(d[::step], m[::step])))
+        parts.append(f'<polyline points="{pts}" fill="none" stroke="#d62728" stroke-width="1.5" '
+                     f'stroke-dasharray="6,3"/>')
+    parts.append(f'<text x="{L + 10}" y="{T + 14}" fill="#1f77b4">measured</text>')
+    if m is not None:
+        parts.append(f'<text x="{L + 10}" y="{T + 30}" fill="#d62728">model</text>')
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def write_report_html(path: str | Path, *, experiment, parameters: dict, cost: dict,
+                      standard_error_rel: dict | None = None, identifiability_lines=(), effects=(),
+                      model_force_N=None, overlays=(), mesh_lines=(), nu: float = 0.49) -> Path:
+    """A self-contained HTML report of one identification."""
+    e = html.escape
+    ref = experiment.reference_moduli_kPa(nu)
+    se = standard_error_rel or {}
+    rows = []
+    for name, val in parameters.items():
+        s = se.get(name)
+        s_txt = "undetermined" if s is None or not np.isfinite(s) else f"&plusmn;{100 * s:.1f}%"
+        region = name[2:-4] if name.startswith("E_") and name.endswith("_kPa") else None
+        r_txt = f"{ref[region]:.1f}" if region in ref else "&ndash;"
+        rows.append(f"<tr><td>{e(name)}</td><td>{val:.2f}</td><td>{s_txt}</td><td>{r_txt}</td></tr>")
+    log = experiment.force_log
+    svg = _force_svg(log.displacement_mm, log.force_N, model_force_N)
+    imgs = "".join(f'<figure><img src="data:image/png;base64,{_png_b64(overlay_rgb(w, t))}"/>'
+                   f"<figcaption>{e(cap)}: red target, green warped source</figcaption></figure>"
+                   for cap, w, t in overlays)
+    doc = f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>ElastoID report: {e(experiment.name)}</title>
+<style>body{{font-family:sans-serif;max-width:980px;margin:2em auto;color:#222}}table{{border-collapse:collapse}}
+td,th{{border:1px solid #ccc;padding:4px 10px;text-align:right}}th{{background:#eef}}figure{{display:inline-block;margin:8px}}
+img{{image-rendering:pixelated;max-width:420px}}pre{{background:#f6f6f6;padding:8px;white-space:pre-wrap}}</style></head><body>
+<h1>ElastoID identification report</h1>
+<p><b>Experiment:</b> {e(experiment.name)}<br><b>Folder:</b> {e(str(experiment.path or ""))}<br>
+<b>Model:</b> linear elasticity, P2 tetrahedra, Poisson's ratio {nu:g}; effects: {e(", ".join(effects) or "none (baseline)")}<br>
+<b>Made:</b> {datetime.now().isoformat(timespec="seconds")}</p>
+<h2>Parameters</h2><table><tr><th>parameter</th><th>identified</th><th>standard error</th><th>reference</th></tr>
+{"".join(rows)}</table>
+<p>Cost: total {cost.get("total", float("nan")):.5f}, NMI {cost.get("nmi", float("nan")):.4f},
+force RMS misfit {cost.get("force_rms_N", float("nan")):.4f} N.</p>
+<h2>Identifiability</h2><pre>{e(chr(10).join(identifiability_lines))}</pre>
+<h2>Force</h2>{svg}
+<h2>Overlays</h2>{imgs or "<p>(none)</p>"}
+<h2>Mesh</h2><pre>{e(chr(10).join(mesh_lines))}</pre>
+</body></html>"""
+    Path(path).write_text(doc, encoding="utf-8")
+    return Path(path)

@@ -1,0 +1,64 @@
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.core.experiment import read_experiment
+from app.core.export import overlay_rgb, write_feb, write_report_html, write_vtu
+from tests.core.helpers import cube_mesh
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _mesh():
+    return cube_mesh(3, size=(30.0, 30.0, 20.0), probe_rect=(10.0, 20.0, 10.0, 20.0),
+                     labels=lambda c: (np.linalg.norm(c - [15, 15, 10], axis=1) < 6).astype(np.int32))
+
+
+def test_vtu_carries_regions_and_moduli(tmp_path):
+    import meshio
+
+    mesh = _mesh()
+    p = write_vtu(tmp_path / "m.vtu", mesh, {"E_R0_kPa": 18.0, "E_R1_kPa": 63.0})
+    back = meshio.read(p)
+    assert np.allclose(back.points, mesh.points_mm)
+    E = back.cell_data["E_kPa"][0]
+    assert np.allclose(E, np.where(mesh.labels == 1, 63.0, 18.0))
+    with pytest.raises(ValueError, match="R1"):
+        write_vtu(tmp_path / "x.vtu", mesh, {"E_R0_kPa": 18.0})
+
+
+def test_feb_follows_febio4_structure(tmp_path):
+    mesh = _mesh()
+    p = write_feb(tmp_path / "m.feb", mesh, {"E_R0_kPa": 18.0, "E_R1_kPa": 63.0}, nu=0.49, probe_travel_mm=14.8)
+    root = ET.parse(p).getroot()
+    assert root.tag == "febio_spec" and root.get("version") == "4.0"
+    mats = {m.get("name"): float(m.find("E").text) for m in root.iter("material")}
+    assert mats == {"R0": pytest.approx(0.018), "R1": pytest.approx(0.063)}  # MPa in mm-N-MPa units
+    n_nodes = len(root.find("Mesh/Nodes"))
+    n_elems = sum(len(els) for els in root.iter("Elements"))
+    assert (n_nodes, n_elems) == (mesh.n_nodes, mesh.n_tets)
+    ids = [int(x) for els in root.iter("Elements") for el in els for x in el.text.split(",")]
+    assert min(ids) == 1 and max(ids) == mesh.n_nodes
+    sets = {s.get("name"): s.text.split(",") for s in root.iter("NodeSet")}
+    assert len(sets["probe"]) == int(mesh.probe_nodes().sum())
+    push = [bc for bc in root.iter("bc") if bc.get("type") == "prescribed displacement"][0]
+    assert float(push.find("value").text) == pytest.approx(-14.8) and push.find("dof").text == "z"
+    assert {d.get("name") for d in root.iter("SolidDomain")} == {"R0", "R1"}
+
+
+def test_html_report_holds_parameters_force_and_overlays(tmp_path):
+    exp = read_experiment(ROOT / "resources" / "demo")
+    rng = np.random.default_rng(0)
+    w, t = rng.random((40, 50)), rng.random((40, 50))
+    p = write_report_html(tmp_path / "r.html", experiment=exp, parameters={"E_B_kPa": 17.9, "E_A_kPa": 62.1},
+                          cost={"total": -1.05, "nmi": 1.05, "force_rms_N": 0.02},
+                          standard_error_rel={"E_B_kPa": 0.01, "E_A_kPa": float("inf")},
+                          identifiability_lines=["E_A_kPa: weakly constrained"],
+                          model_force_N=0.63 * np.clip(exp.force_log.displacement_mm, 0, None),
+                          overlays=[("frame 2", w, t)])
+    text = p.read_text()
+    assert "62.10" in text and "63.0" in text and "undetermined" in text and "&plusmn;1.0%" in text
+    assert text.count("<polyline") == 2 and "data:image/png;base64," in text
+    assert overlay_rgb(w, t).shape == (40, 50, 3)
