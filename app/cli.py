@@ -97,15 +97,31 @@ def cmd_identify(args) -> int:
     exp = read_experiment(args.experiment)
     starts = _floats(args.starts, what="--starts")
     bar = TerminalProgress(not args.quiet, len(starts))
-    settings = MeshSettings(edge_mm=args.mesh_edge_mm, probe_edge_mm=args.probe_edge_mm)
+    settings = None
+    if args.mesh_edge_mm or args.probe_edge_mm:
+        from app.core.mesh import auto_settings
+
+        auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
+        settings = MeshSettings(edge_mm=args.mesh_edge_mm or auto.edge_mm,
+                                probe_edge_mm=args.probe_edge_mm or auto.probe_edge_mm)
     frames = [int(x) for x in args.frames.split(",")] if args.frames else None
     roi = [int(x) for x in _floats(args.roi, 4, "--roi")] if args.roi else None
-    problem = Problem.from_experiment(exp, mesh_settings=settings, roi_px=roi, frames=frames, cost=args.cost,
-                                      nu=args.nu, progress=bar.message)
-    try:
-        result = identify(problem, starts, progress=bar)
-    finally:
-        bar.done()
+    if effects:
+        from app.core.effects.model import EffectProblem, identify_with_effects
+
+        problem = EffectProblem.from_experiment(exp, effects=effects, mesh_settings=settings, roi_px=roi,
+                                                frames=frames, cost=args.cost, nu=args.nu, progress=bar.message)
+        try:
+            result = identify_with_effects(problem, starts, progress=bar)
+        finally:
+            bar.done()
+    else:
+        problem = Problem.from_experiment(exp, mesh_settings=settings, roi_px=roi, frames=frames, cost=args.cost,
+                                          nu=args.nu, progress=bar.message)
+        try:
+            result = identify(problem, starts, progress=bar)
+        finally:
+            bar.done()
     result.effects = tuple(effects)
     result.experiment = str(args.experiment)
     payload = result.to_json_dict()
@@ -115,13 +131,57 @@ def cmd_identify(args) -> int:
     if args.json != "-":
         print(f"{exp.name}: {result.evaluations} evaluations in {result.seconds:.1f} s, cost {args.cost}")
         for name, val in result.parameters.items():
-            region = name[2:-4]
+            region = name[2:-4] if name.startswith("E_") else ""
             extra = f"   (reference {ref[region]:.1f} kPa)" if region in ref else ""
             print(f"  {name} = {val:8.2f}{extra}")
         for k, v in result.ratios().items():
-            print(f"  ratio {k} = {v:.3f}")
+            if k.startswith("E_") and k.split("/")[0].endswith("_kPa"):
+                print(f"  ratio {k} = {v:.3f}")
         print(f"  NMI {result.cost['nmi']:.4f}, force RMS misfit {result.cost['force_rms_N']:.4f} N")
-        for line in result.identifiability.lines():
+        if result.identifiability is not None:
+            for line in result.identifiability.lines():
+                print(f"  {line}")
+    return 0
+
+
+def _mesh_settings(args, exp):
+    from app.core.mesh import MeshSettings, auto_settings
+
+    if not (args.mesh_edge_mm or args.probe_edge_mm):
+        return None
+    auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
+    return MeshSettings(edge_mm=args.mesh_edge_mm or auto.edge_mm, probe_edge_mm=args.probe_edge_mm or auto.probe_edge_mm)
+
+
+def cmd_diagnose(args) -> int:
+    from app.core.diagnose import diagnose
+    from app.core.effects import EFFECT_IDS
+    from app.core.experiment import read_experiment
+
+    effects = [e for e in (args.effects or "").split(",") if e]
+    _check_effects(effects)
+    candidates = None
+    if args.candidates:
+        candidates = [e for e in args.candidates.split(",") if e]
+        for e in candidates:
+            if e not in EFFECT_IDS:
+                raise ElastoidError(f"--candidates: unknown effect {e!r}; the ids are {', '.join(EFFECT_IDS)}")
+    exp = read_experiment(args.experiment)
+    bar = TerminalProgress(not args.quiet, 1)
+    t0 = time.perf_counter()
+    try:
+        result = diagnose(exp, effects=effects, candidates=candidates, mesh_settings=_mesh_settings(args, exp),
+                          progress=bar.message)
+    finally:
+        bar.done()
+    payload = result.to_json_dict()
+    payload["experiment"] = str(args.experiment)
+    payload["seconds"] = round(time.perf_counter() - t0, 2)
+    if args.json:
+        _write_json(args.json, payload)
+    if args.json != "-":
+        print(f"{exp.name}: diagnosis in {time.perf_counter() - t0:.1f} s")
+        for line in result.lines():
             print(f"  {line}")
     return 0
 
@@ -153,7 +213,9 @@ def cmd_simulate(args) -> int:
                          frames_at_mm=tuple(_floats(args.frames_at, what="--frames-at")),
                          force_noise_N=args.noise_N, seed=args.seed, hold_s=args.hold_s, unload=args.unload,
                          image_shape=(args.rows, args.cols),
-                         truth_mesh=MeshSettings().with_scale(args.truth_mesh_scale))
+                         truth_mesh_scale=args.truth_mesh_scale,
+                         effects=tuple(e for e in args.effects.split(",") if e), g1=args.g1, tau1_s=args.tau1_s,
+                         nu=args.nu)
     say = (lambda s: print(s, file=sys.stderr)) if not args.quiet else None
     out = simulate_experiment(args.output, spec, progress=say, overwrite=args.overwrite)
     print(out)
@@ -178,10 +240,20 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--roi", help="col0,row0,col1,row1 in pixels (default: the experiment's)")
     ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")
     ip.add_argument("--nu", type=float, default=0.49, help="Poisson's ratio (default 0.49)")
-    ip.add_argument("--mesh-edge-mm", type=float, default=10.0)
-    ip.add_argument("--probe-edge-mm", type=float, default=2.5)
+    ip.add_argument("--mesh-edge-mm", type=float, help="element size far from the probe (default: automatic)")
+    ip.add_argument("--probe-edge-mm", type=float, help="element size on the probe face (default: automatic)")
     ip.add_argument("--quiet", action="store_true", help="no progress line")
     ip.set_defaults(func=cmd_identify)
+
+    dp = sub.add_parser("diagnose", help="find which physical effect the model misses")
+    dp.add_argument("experiment", type=Path)
+    dp.add_argument("--effects", default="", help="effects already in the current model (ids, comma-separated)")
+    dp.add_argument("--candidates", default="", help="effects to try (default: every effect not in the model)")
+    dp.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
+    dp.add_argument("--mesh-edge-mm", type=float, help="element size far from the probe (default: automatic)")
+    dp.add_argument("--probe-edge-mm", type=float, help="element size on the probe face (default: automatic)")
+    dp.add_argument("--quiet", action="store_true", help="no progress line")
+    dp.set_defaults(func=cmd_diagnose)
 
     sp = sub.add_parser("simulate", help="write a synthetic experiment folder (with truth.toml)")
     sp.add_argument("output", type=Path)
@@ -198,7 +270,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--noise-N", type=float, default=0.02)
     sp.add_argument("--rows", type=int, default=256)
     sp.add_argument("--cols", type=int, default=200)
-    sp.add_argument("--truth-mesh-scale", type=float, default=0.7, help="truth mesh size relative to the default")
+    sp.add_argument("--truth-mesh-scale", type=float, default=0.7,
+                    help="truth mesh size relative to the automatic identification mesh (< 1: finer)")
+    sp.add_argument("--effects", default="", help="physical effects in the truth (ids, comma-separated)")
+    sp.add_argument("--g1", type=float, default=0.3, help="viscoelastic truth: relaxing fraction")
+    sp.add_argument("--tau1-s", type=float, default=2.0, help="viscoelastic truth: relaxation time, s")
+    sp.add_argument("--nu", type=float, default=0.49, help="Poisson's ratio of the truth")
     sp.add_argument("--overwrite", action="store_true")
     sp.add_argument("--quiet", action="store_true")
     sp.set_defaults(func=cmd_simulate)

@@ -47,6 +47,12 @@ class SyntheticSpec:
     seed: int = 0
     # write the true moduli as the experiment's [reference] (as a rheometer would give them)
     reference_method: str | None = None
+    # physical effects in the truth (ids of app.core.effects) and their parameters
+    effects: tuple = ()
+    g1: float = 0.3  # viscoelastic: relaxing fraction of the instantaneous moduli
+    tau1_s: float = 2.0  # viscoelastic: relaxation time
+    hidden_regions: tuple = ()  # inclusion: regions in the truth but not in experiment.toml (moduli in moduli_kPa)
+    load_steps: int = 8  # hyperelastic: load steps of the truth's neo-Hookean solve
 
     def with_(self, **kw) -> "SyntheticSpec":
         return replace(self, **kw)
@@ -82,11 +88,20 @@ def simulate_experiment(out: str | Path, spec: SyntheticSpec = SyntheticSpec(), 
     """Write a synthetic experiment folder (format 1) with ``truth.toml`` beside it."""
     say = progress or (lambda s: None)
     exp = _template(spec)
+    from app.core.effects import check
+
+    effects = check(spec.effects)
+    steps = None
+    if "hyperelastic" in effects:
+        marks = sorted({float(x) for x in spec.frames_at_mm if x > 0} | {float(spec.depth_mm)})
+        steps = sorted(set(np.round(np.concatenate(
+            [np.linspace(0, spec.depth_mm, spec.load_steps + 1)[1:], marks]), 9)))
     twin = SpecimenTwin.build(exp, spec.moduli_kPa, nu=spec.nu, mesh_settings=spec.truth_mesh,
                               mesh_scale=spec.truth_mesh_scale,
                               image_shape=spec.image_shape, max_travel_mm=spec.depth_mm, seed=spec.seed,
                               echogenicity=spec.echogenicity, density_per_mm3=spec.scatterer_density_per_mm3,
-                              progress=say, cancel=cancel)
+                              progress=say, cancel=cancel, effects=effects, hidden_regions=tuple(spec.hidden_regions),
+                              g1=spec.g1, tau1_s=spec.tau1_s, load_steps_mm=steps)
     t, d = protocol(spec)
     images, frames = {}, []
     for k, dk in enumerate(spec.frames_at_mm):
@@ -94,13 +109,19 @@ def simulate_experiment(out: str | Path, spec: SyntheticSpec = SyntheticSpec(), 
         name = f"images/frame_{k:03d}.png"
         images[name] = twin.frame(dk)
         frames.append(Frame(name, round(float(dk / spec.speed_mm_s), 6), float(dk)))
-    F = twin.force_N(d) + spec.force_noise_N * twin.rng.standard_normal(len(t))
+    F = twin.force_history_N(t, d) + spec.force_noise_N * twin.rng.standard_normal(len(t))
     exp = replace(exp, frames=tuple(frames), force_log=ForceLog(t, d, F))
     if spec.reference_method:
         exp = replace(exp, reference={"youngs_modulus_kPa": dict(spec.moduli_kPa), "method": spec.reference_method})
     out = Path(out)
     write_experiment(out, exp, images, overwrite=overwrite)
-    write_truth(out, spec, twin.mesh_nodes, twin.mesh_tets, twin.force_N_per_mm)
+    extra = {}
+    if "viscoelastic" in effects:
+        extra["viscoelastic"] = {"g1": spec.g1, "tau1_s": spec.tau1_s}
+    if spec.hidden_regions:
+        extra["hidden_regions"] = [{"name": r.name, "kind": r.kind, "center_mm": list(r.center_mm),
+                                    **({"radius_mm": r.radius_mm} if r.radius_mm else {})} for r in spec.hidden_regions]
+    write_truth(out, spec, twin.mesh_nodes, twin.mesh_tets, twin.force_N_per_mm, effects, extra)
     say(f"wrote {out}")
     return out
 

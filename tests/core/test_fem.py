@@ -137,7 +137,6 @@ def test_quadratic_elements_do_not_lock_when_nearly_incompressible():
 
 def test_assembly_matches_scikit_fem():
     """Energy of P2 fields and the stiffness itself agree with scikit-fem on the same mesh."""
-    skfem = pytest.importorskip("skfem")
     from skfem import Basis, ElementTetP2, ElementVector, MeshTet, asm
     from skfem.models.elasticity import linear_elasticity
 

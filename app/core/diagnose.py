@@ -1,0 +1,549 @@
+"""Diagnosis: which physical effect does the model miss?
+
+For the current model (the baseline, or the baseline plus effects already
+added), every candidate effect is added in turn and the model refitted from the
+current optimum (a warm start). Each fit is scored by an information criterion
+(BIC) under a stated noise model:
+
+- force: independent Gaussian noise on every sample of the log, with the
+  standard deviation estimated from the log itself
+  (:func:`app.core.identify.force_noise_N`);
+- images: the displacement on the image plane measured by speckle tracking at
+  non-overlapping blocks (:func:`app.core.compare.track`), independent between
+  blocks, with the tracking noise estimated from the blocks; each block of each
+  frame counts as two measurements, so a frame counts as much as the
+  independent displacements it holds, not as its pixels. Tracking has outliers
+  (decorrelated blocks), so the image term is a Huber loss (quadratic up to 2
+  sigma, linear beyond), the likelihood of a Gaussian with heavier tails.
+
+    chi2 = sum_force (r / sigma_F)^2 + sum_blocks rho(r / sigma_u)
+    score(effect) = chi2(current) - chi2(current + effect) - k ln N
+
+with k the parameters the effect adds (a switch without a continuous parameter
+counts as one) and N the number of measurements. The verdict is the best
+candidate with a positive score, else "none".
+
+The fits minimize that same chi2 (maximum likelihood), so the criterion
+compares maxima. The contract's cost parts (-NMI, force RMS) are reported too.
+
+:class:`ModelHistory` keeps the versions of the model (effects, parameters,
+cost) so the error across versions can be charted, compared and reverted;
+:class:`ModelCheck` is the Qt-free object a GUI panel drives.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import asdict, dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+
+from app.core.compare import Comparison, TrackedField, compare, track
+from app.core.effects import EFFECT_IDS, INFO, check
+from app.core.effects.model import EffectProblem, FitResult, fit, fit_hyperelastic, identify_with_effects
+from app.core.errors import Cancelled, ElastoidError
+from app.core.identify import force_noise_N
+
+HUBER_C = 2.0
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    force_sigma_N: float
+    n_force: int
+    displacement_sigma_px: float
+    n_displacement: int  # scalar components (2 per valid block and frame pair)
+    huber: float = HUBER_C
+
+    @property
+    def n(self) -> int:
+        return self.n_force + self.n_displacement
+
+    def describe(self) -> str:
+        return (f"force: independent Gaussian noise of {self.force_sigma_N:.3g} N on each of {self.n_force} samples "
+                f"(estimated from the log); images: {self.n_displacement // 2} tracked blocks, independent "
+                f"{self.displacement_sigma_px:.3g} px noise per component (estimated from the blocks), "
+                f"Huber loss beyond {self.huber:g} sigma")
+
+
+def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """The smooth part of a block residual field: the median over each block's 3 x 3
+    neighbourhood (valid blocks), which keeps a systematic misfit and suppresses
+    the independent tracking noise (and its outliers)."""
+    lut = {tuple(g): i for i, g in enumerate(grid) if valid[i]}
+    out = []
+    for i, (r, cc) in enumerate(grid):
+        if not valid[i]:
+            continue
+        nb = [lut[(r + dr, cc + dc)] for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (r + dr, cc + dc) in lut]
+        out.append(np.median(residual[nb], axis=0))
+    return np.asarray(out).reshape(-1, 2)
+
+
+class Likelihood:
+    """-2 log-likelihood (up to a constant) of a problem's model at parameters."""
+
+    def __init__(self, problem: EffectProblem, tracked: TrackedField, noise: NoiseModel):
+        self.problem, self.tracked, self.noise = problem, tracked, noise
+        self.names = []
+        for k, tp in enumerate(tracked.pairs):
+            name = f"__track{k}"
+            problem.add_points(name, tp.points_world_mm)
+            self.names.append(name)
+
+    def model_px(self, params: dict, a=None) -> list[np.ndarray]:
+        """Model displacement (n, 2) px at every tracked block of each pair."""
+        P = self.problem
+        if a is None:
+            a = P.rm.coords(P.theta(P.complete(params)))
+        return [P.displacement_px(params, n, pair, a) for n, pair in zip(self.names, P.pairs)]
+
+    def parts(self, params: dict) -> dict:
+        P = self.problem
+        params = P.complete(params)
+        a = P.rm.coords(P.theta(params))
+        rF = (P.model_force_N(params, a) - P.log_F) / self.noise.force_sigma_N
+        chi_F = float(rF @ rF)
+        c = self.noise.huber
+        chi_u, sq, n, sys_sq, sys_n = 0.0, 0.0, 0, 0.0, 0
+        for tp, m in zip(self.tracked.pairs, self.model_px(params, a)):
+            r = (tp.measured_px - m)[tp.valid]
+            sq += float((r**2).sum())
+            n += r.shape[0]
+            z = np.abs(r) / self.noise.displacement_sigma_px
+            chi_u += float(np.where(z <= c, z * z, 2 * c * z - c * c).sum())
+            s = _systematic(tp.measured_px - m, tp.valid, tp.grid_index)
+            sys_sq += float((s**2).sum())
+            sys_n += len(s)
+        return {"total": chi_F + chi_u, "force": chi_F, "images": chi_u,
+                "force_rms_N": float(np.sqrt(np.mean((rF * self.noise.force_sigma_N) ** 2))),
+                "displacement_rms_px": float(np.sqrt(sq / max(n, 1))),
+                "displacement_systematic_px": float(np.sqrt(sys_sq / max(sys_n, 1)))}
+
+    def __call__(self, params: dict) -> float:
+        return self.parts(params)["total"]
+
+
+@dataclass
+class Candidate:
+    """A model (current + one effect) fitted by maximum likelihood and scored."""
+
+    effect: str  # "" for the current model itself
+    effects: tuple  # the model's full effect list
+    parameters: dict
+    cost: dict  # contract cost parts: total, nmi, force_rms_N
+    misfit: dict  # chi2 parts and RMS misfits (force_rms_N, displacement_rms_px)
+    n_parameters: int = 0
+    score: float = 0.0
+    evidence: str = ""
+    inclusion: dict | None = None  # the located region (name, center_mm, radius_mm)
+    seconds: float = 0.0
+    problem: EffectProblem | None = field(default=None, repr=False)
+
+    def to_json_dict(self) -> dict:
+        params = dict(self.parameters)
+        if self.inclusion:
+            params["center_mm"] = self.inclusion["center_mm"]
+            params["radius_mm"] = self.inclusion["radius_mm"]
+        d = {"effect": self.effect, "effects": list(self.effects), "cost": self.cost, "parameters": params,
+             "score": round(float(self.score), 3), "evidence": self.evidence,
+             "misfit": {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.misfit.items()},
+             "added_parameters": self.n_parameters, "seconds": round(self.seconds, 2)}
+        if self.inclusion:
+            d["inclusion"] = self.inclusion
+        return d
+
+
+@dataclass
+class Diagnosis:
+    experiment: str
+    baseline: Candidate
+    candidates: list  # ranked, best first
+    verdict: str
+    noise: NoiseModel
+    seconds: float
+    comparison: Comparison | None = field(default=None, repr=False)
+    tracked: TrackedField | None = field(default=None, repr=False)
+
+    def candidate(self, effect: str) -> Candidate:
+        return next(c for c in self.candidates if c.effect == effect)
+
+    def rank_of(self, effect: str) -> int:
+        """1-based rank of an effect among the candidates."""
+        return 1 + [c.effect for c in self.candidates].index(effect)
+
+    def to_json_dict(self) -> dict:
+        b = self.baseline
+        return {"experiment": self.experiment,
+                "baseline": {"effects": list(b.effects), "cost": b.cost, "parameters": b.parameters,
+                             "misfit": b.misfit},
+                "candidates": [{k: v for k, v in c.to_json_dict().items() if k != "effects"}
+                               for c in self.candidates],
+                "verdict": self.verdict,
+                "noise_model": self.noise.describe(),
+                "seconds": round(self.seconds, 2)}
+
+    def lines(self) -> list[str]:
+        out = [f"current model: {', '.join(self.baseline.effects) or 'baseline'}; "
+               f"force misfit {self.baseline.misfit['force_rms_N']:.4f} N, displacement misfit "
+               f"{self.baseline.misfit['displacement_rms_px']:.3f} px", f"noise model: {self.noise.describe()}"]
+        for i, c in enumerate(self.candidates, 1):
+            out.append(f"{i}. {c.effect:16s} score {c.score:9.1f}   {c.evidence}")
+        out.append(f"verdict: {self.verdict}")
+        return out
+
+
+# ---------------------------------------------------------------------------
+# the diagnosis
+# ---------------------------------------------------------------------------
+
+
+def _misfit(lik: Likelihood, params: dict) -> dict:
+    p = lik.parts(params)
+    return {"chi2": p["total"], "chi2_force": p["force"], "chi2_images": p["images"],
+            "force_rms_N": p["force_rms_N"], "displacement_rms_px": p["displacement_rms_px"],
+            "displacement_systematic_px": p["displacement_systematic_px"],
+            "n_force": lik.noise.n_force, "n_images": lik.noise.n_displacement}
+
+
+def _fit_ml(problem: EffectProblem, lik: Likelihood, start: dict, cancel, max_evaluations: int,
+            progress_text=None) -> FitResult:
+    kw = dict(objective=lik, cancel=cancel, max_evaluations=max_evaluations, step=0.15)
+    if "hyperelastic" in problem.effects:
+        return fit_hyperelastic(problem, start, progress_text=progress_text, **kw)
+    return fit(problem, start, **kw)
+
+
+def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=None, progress=None, cancel=None,
+                  **kw) -> EffectProblem:
+    """The problem for a model: effects on the experiment (with an added inclusion region, if any)."""
+    effects = check(effects)
+    if inclusion is not None:
+        from app.core.geometry import Region
+
+        region = Region(inclusion["name"], "sphere", center_mm=tuple(inclusion["center_mm"]),
+                        radius_mm=float(inclusion["radius_mm"]))
+        exp = replace(exp, specimen=exp.specimen.with_region(region))
+    return EffectProblem.from_experiment(exp, effects=effects, mesh_settings=mesh_settings, base=base,
+                                         inclusion=inclusion, progress=progress, cancel=cancel, **kw)
+
+
+def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None = None, start: dict | None = None,
+             mesh_settings=None, inclusion: dict | None = None, max_evaluations: int = 200,
+             progress: Callable[[str], None] | None = None, cancel: threading.Event | None = None) -> Diagnosis:
+    """Try each candidate effect on top of the model with ``effects`` (and, if one
+    was added before, ``inclusion``) and rank them.
+
+    ``problem``/``start``: the current model's problem and an identified optimum
+    (else they are built and identified here). ``progress`` gets text lines.
+    """
+    say = progress or (lambda s: None)
+    t0 = time.perf_counter()
+    effects = check(effects)
+    if candidates is None:
+        candidates = tuple(e for e in EFFECT_IDS if e not in effects)
+    candidates = tuple(c for c in check(candidates) if c not in effects)
+    if problem is None:
+        say(f"building the current model ({', '.join(effects) or 'baseline'})")
+        problem = current_model(exp, effects, mesh_settings=mesh_settings, inclusion=inclusion, progress=say,
+                                cancel=cancel)
+    if start is None:
+        say("identifying the current model")
+        start = identify_with_effects(problem, (10.0, 30.0), cancel=cancel).parameters
+    start = problem.complete(start)
+    if "hyperelastic" in problem.effects and problem._hyper is None:
+        problem.refresh_hyperelastic(start, cancel=cancel)
+    say("tracking speckle between frames")
+    tracked = track(problem, start)
+    sigma_F = problem.force_sigma_N
+    if not np.isfinite(sigma_F) or sigma_F <= 0:
+        sigma_F = max(1e-3 * problem.force_scale_N, 1e-6)
+    noise = NoiseModel(float(sigma_F), len(problem.log_F), tracked.noise_px, 2 * tracked.n_valid)
+    lnN = math.log(noise.n)
+
+    say("refitting the current model (maximum likelihood)")
+    lik0 = Likelihood(problem, tracked, noise)
+    t1 = time.perf_counter()
+    r0 = _fit_ml(problem, lik0, start, cancel, max_evaluations, say)
+    base_params = r0.parameters
+    base = Candidate("", problem.effects, base_params, r0.cost, _misfit(lik0, base_params), 0, 0.0, "",
+                     inclusion, time.perf_counter() - t1, problem)
+    comparison = compare(problem, base_params, tracked)
+
+    out = []
+    for eff in candidates:
+        if cancel is not None and cancel.is_set():
+            raise Cancelled("diagnosis cancelled")
+        say(f"trying {eff}")
+        t1 = time.perf_counter()
+        try:
+            cand = _try_effect(exp, eff, problem, base, tracked, noise, lik0, mesh_settings, max_evaluations, say,
+                               cancel)
+        except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:
+            say(f"{eff}: failed ({exc})")
+            cand = Candidate(eff, tuple(sorted(set(problem.effects) | {eff}, key=EFFECT_IDS.index)), {},
+                             {}, {}, INFO[eff].n_parameters, -math.inf, f"could not be fitted: {exc}")
+        cand.seconds = time.perf_counter() - t1
+        if math.isfinite(cand.score):
+            cand.score = base.misfit["chi2"] - cand.misfit["chi2"] - cand.n_parameters * lnN
+        out.append(cand)
+    out.sort(key=lambda c: -c.score)
+    verdict = out[0].effect if out and out[0].score > 0 else "none"
+    return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked)
+
+
+def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings,
+                max_evaluations, say, cancel) -> Candidate:
+    effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {eff})
+    start = dict(base.parameters)
+    inclusion = problem.inclusion
+    if eff == "inclusion":
+        from app.core.effects.inclusion import locate
+
+        guess = locate(tracked, lik0.model_px(base.parameters), problem.exp, problem.exp.probe.center_mm[1])
+        if guess is None:
+            raise ElastoidError("no localized misfit to place an inclusion at")
+        say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm")
+        inclusion = {"name": guess.name, **guess.as_parameters()}
+        cp = current_model(problem.exp, effects, mesh_settings=mesh_settings, inclusion=inclusion, progress=say,
+                           cancel=cancel, nu=problem.nu)
+        bg = base.parameters[problem.moduli_names[0]]
+        # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
+        from app.core.geometry import paint_labels
+
+        host = problem.moduli_names[int(paint_labels(np.array([guess.center_mm]), problem.exp.specimen.regions)[0])]
+        start[f"E_{guess.name}_kPa"] = base.parameters.get(host, bg) * (2.0 if guess.stiffer else 0.5)
+    else:
+        cp = EffectProblem.from_experiment(problem.exp, effects=effects, base=problem, frames=problem.frames,
+                                           roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind,
+                                           inclusion=inclusion, progress=say, cancel=cancel)
+    if "hyperelastic" in problem.effects and "hyperelastic" in effects and cp._hyper is None:
+        cp.refresh_hyperelastic(start, cancel=cancel)
+    lik = Likelihood(cp, tracked, noise)
+    start = cp.complete(start)
+    res = None
+    for s in _starts(eff, cp, start):
+        r = _fit_ml(cp, lik, s, cancel, max_evaluations, say)
+        if res is None or r.objective < res.objective:
+            res = r
+    mis = _misfit(lik, res.parameters)
+    cand = Candidate(eff, effects, res.parameters, res.cost, mis, INFO[eff].n_parameters, 0.0, "", inclusion, 0.0, cp)
+    cand.evidence = _evidence(eff, problem, base, cand, tracked, lik0, lik)
+    return cand
+
+
+def _starts(eff, problem: EffectProblem, start: dict) -> list[dict]:
+    """Warm starts for a candidate: the current optimum with the effect's parameters
+    at a few values, including one next to the nested (effect-free) model."""
+    if eff == "viscoelastic":
+        T = float(problem.log_t[-1] - problem.log_t[0])
+        out = []
+        for g1 in (0.05, 0.3, 0.6):
+            for tau in (0.05 * T, 0.4 * T):
+                s = dict(start, g1=g1, tau1_s=max(tau, 0.1))
+                # moduli are instantaneous: raise them as the fraction that relaxes
+                for n in problem.moduli_names:
+                    s[n] = start[n] / (1.0 - 0.5 * g1)
+                out.append(s)
+        return out
+    if eff == "compressibility":
+        return [dict(start, nu=0.45), dict(start, nu=0.35)]
+    return [start]
+
+
+def _evidence(eff, problem, base: Candidate, cand: Candidate, tracked, lik0, lik) -> str:
+    P = problem
+    F0 = P.model_force_N(base.parameters)
+    if eff == "viscoelastic":
+        from app.core.effects.viscoelastic import evidence
+
+        return evidence(P.log_t, P.log_d, P.log_F, F0, cand.problem.model_force_N(cand.parameters), cand.parameters)
+    if eff == "hyperelastic":
+        from app.core.effects.hyperelastic import evidence
+
+        return evidence(P.log_d, P.log_F, F0)
+    before, after = base.misfit["displacement_rms_px"], cand.misfit["displacement_rms_px"]
+    if eff in ("sliding-bottom", "probe-slip"):
+        from app.core.effects.boundary import evidence
+
+        lat, depth = [], []
+        c_axis = P.exp.imaging.probe_face_px[0]
+        for tp, m in zip(tracked.pairs, lik0.model_px(base.parameters)):
+            pts = tp.points_px[tp.valid]
+            r = (tp.measured_px - m)[tp.valid]
+            lat.append(r[:, 0] * np.sign(pts[:, 0] - c_axis))
+            depth.append((pts[:, 1] - P.exp.imaging.probe_face_px[1]) * P._sr)
+        return evidence(eff, np.concatenate(lat), np.concatenate(depth), P._sc, before, after)
+    if eff == "compressibility":
+        from app.core.effects.compressibility import evidence
+
+        return evidence(cand.parameters["nu"], P.nu, before, after)
+    if eff == "inclusion":
+        from app.core.effects.inclusion import InclusionGuess, evidence
+
+        inc = cand.inclusion
+        g = InclusionGuess(inc["name"], tuple(inc["center_mm"]), inc["radius_mm"], True, 0.0)
+        depth = P.exp.specimen.size_mm[2] - inc["center_mm"][2]
+        from app.core.geometry import paint_labels
+
+        host = P.moduli_names[int(paint_labels(np.array([inc["center_mm"]]), P.exp.specimen.regions)[0])]
+        ratio = cand.parameters[f"E_{inc['name']}_kPa"] / cand.parameters[host]
+        return evidence(g, depth, ratio) + f"; the displacement misfit falls from {before:.2f} to {after:.2f} px"
+    return ""
+
+
+# ---------------------------------------------------------------------------
+# versions of the model
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ModelVersion:
+    """One version of the model: its effects, fitted parameters and errors."""
+
+    index: int
+    effects: tuple
+    parameters: dict
+    cost: dict  # contract cost parts (total, nmi, force_rms_N)
+    misfit: dict  # chi2 parts, force_rms_N, displacement_rms_px
+    note: str = ""
+    inclusion: dict | None = None
+    parent: int | None = None
+
+    @property
+    def label(self) -> str:
+        return "baseline" if not self.effects else "+ " + ", ".join(self.effects)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class ModelHistory:
+    """The versions of a model, oldest first, and which one is current. Never
+    changed in place: :meth:`with_version` and :meth:`reverted` return new ones."""
+
+    versions: tuple = ()
+    current: int = -1
+
+    def __len__(self) -> int:
+        return len(self.versions)
+
+    @property
+    def current_version(self) -> ModelVersion | None:
+        return self.versions[self.current] if self.versions else None
+
+    def with_version(self, effects, parameters, cost, misfit, note: str = "", inclusion=None) -> "ModelHistory":
+        v = ModelVersion(len(self.versions), tuple(effects), dict(parameters), dict(cost), dict(misfit), note,
+                         inclusion, self.current if self.versions else None)
+        return ModelHistory(self.versions + (v,), len(self.versions))
+
+    def reverted(self, index: int) -> "ModelHistory":
+        """The same versions with ``index`` current again (later ones are kept to compare)."""
+        if not 0 <= index < len(self.versions):
+            raise IndexError(f"no version {index}")
+        return ModelHistory(self.versions, index)
+
+    def errors(self) -> dict:
+        """Series to chart the error across versions: labels and misfits per version."""
+        return {"index": [v.index for v in self.versions], "label": [v.label for v in self.versions],
+                "force_rms_N": [v.misfit.get("force_rms_N") for v in self.versions],
+                "displacement_rms_px": [v.misfit.get("displacement_rms_px") for v in self.versions],
+                "displacement_systematic_px": [v.misfit.get("displacement_systematic_px") for v in self.versions],
+                "chi2": [v.misfit.get("chi2") for v in self.versions],
+                "nmi": [v.cost.get("nmi") for v in self.versions]}
+
+    def compare(self, i: int, j: int) -> dict:
+        """What changed from version i to version j: effects, parameters, errors (ratios j / i)."""
+        a, b = self.versions[i], self.versions[j]
+        params = {k: (a.parameters.get(k), b.parameters.get(k)) for k in sorted(set(a.parameters) | set(b.parameters))}
+        err = {}
+        for k in ("force_rms_N", "displacement_rms_px", "displacement_systematic_px", "chi2"):
+            x, y = a.misfit.get(k), b.misfit.get(k)
+            err[k] = (x, y, (y / x) if x else None)
+        return {"added": [e for e in b.effects if e not in a.effects],
+                "removed": [e for e in a.effects if e not in b.effects], "parameters": params, "errors": err}
+
+    def to_json_dict(self) -> dict:
+        return {"current": self.current, "versions": [v.to_dict() for v in self.versions]}
+
+    @classmethod
+    def from_json_dict(cls, d: dict) -> "ModelHistory":
+        vs = tuple(ModelVersion(**{**v, "effects": tuple(v["effects"])}) for v in d["versions"])
+        return cls(vs, int(d["current"]))
+
+
+class ModelCheck:
+    """The model check of one experiment, Qt-free: identify the current model,
+    compare it with the measurements, diagnose, add the verdict, revert.
+
+    Long calls take ``progress`` (text) and ``cancel`` (threading.Event) and
+    never print. State: ``history`` (a :class:`ModelHistory`), ``problem`` (the
+    current version's), ``last_diagnosis``."""
+
+    def __init__(self, exp, *, mesh_settings=None, nu: float = 0.49):
+        self.exp, self.mesh_settings, self.nu = exp, mesh_settings, nu
+        self.history = ModelHistory()
+        self.problem: EffectProblem | None = None
+        self.tracked: TrackedField | None = None
+        self.last_diagnosis: Diagnosis | None = None
+        self._problems: dict[int, EffectProblem] = {}
+
+    @property
+    def effects(self) -> tuple:
+        v = self.history.current_version
+        return v.effects if v else ()
+
+    def identify(self, effects=(), *, inclusion=None, progress=None, cancel=None, starts_kPa=(10.0, 30.0),
+                 note: str = "") -> ModelVersion:
+        """Fit a model with ``effects`` (NMI + force, as ``identify``) and make it a new version."""
+        problem = current_model(self.exp, effects, mesh_settings=self.mesh_settings, inclusion=inclusion,
+                                base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
+        res = identify_with_effects(problem, starts_kPa, cancel=cancel)
+        if self.tracked is None:
+            self.tracked = track(problem, res.parameters)
+        return self._add_version(problem, res.parameters, res.cost, note or "identified", inclusion)
+
+    def _add_version(self, problem, params, cost, note, inclusion) -> ModelVersion:
+        noise = NoiseModel(problem.force_sigma_N, len(problem.log_F), self.tracked.noise_px, 2 * self.tracked.n_valid)
+        mis = _misfit(Likelihood(problem, self.tracked, noise), params)
+        self.history = self.history.with_version(problem.effects, params, cost, mis, note, inclusion)
+        self.problem = problem
+        self._problems[self.history.current] = problem
+        return self.history.current_version
+
+    def compare(self, index: int | None = None) -> Comparison:
+        i = self.history.current if index is None else index
+        v = self.history.versions[i]
+        return compare(self._problems[i], v.parameters, self.tracked)
+
+    def diagnose(self, candidates=None, *, progress=None, cancel=None) -> Diagnosis:
+        v = self.history.current_version
+        if v is None:
+            raise ElastoidError("identify a model first")
+        self.last_diagnosis = diagnose(self.exp, effects=v.effects, candidates=candidates, problem=self.problem,
+                                       start=v.parameters, mesh_settings=self.mesh_settings, inclusion=v.inclusion,
+                                       progress=progress, cancel=cancel)
+        return self.last_diagnosis
+
+    def add(self, effect: str | None = None) -> ModelVersion:
+        """Add an effect (default: the last diagnosis' verdict) as a new version,
+        with the candidate's fitted parameters."""
+        d = self.last_diagnosis
+        if d is None:
+            raise ElastoidError("diagnose first")
+        effect = effect or d.verdict
+        if effect == "none":
+            raise ElastoidError("the diagnosis found no effect to add")
+        c = d.candidate(effect)
+        if c.problem is None:
+            raise ElastoidError(f"{effect} could not be fitted")
+        return self._add_version(c.problem, c.parameters, c.cost, f"added {effect}", c.inclusion)
+
+    def revert(self, index: int) -> ModelVersion:
+        self.history = self.history.reverted(index)
+        self.problem = self._problems[index]
+        return self.history.current_version

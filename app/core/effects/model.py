@@ -1,0 +1,452 @@
+"""The forward model with effects: an identification problem whose free
+parameters are the moduli plus the effects' own, and a fit over them.
+
+:class:`EffectProblem` extends :class:`app.core.identify.Problem` (same cost
+parts, same frames, same warps); with no effect it evaluates exactly as the
+baseline. Per effect:
+
+- viscoelastic: the force is the hereditary integral over the elastic force
+  history (frames unchanged: see :mod:`app.core.effects.viscoelastic`).
+- hyperelastic: a neo-Hookean solve along the load path gives the force curve
+  and the fields at the frames' travels. Inside a fit the model is
+  ``linear(theta) + [hyperelastic - linear](theta_ref)``: the nonlinear
+  correction, which depends only on the moduli ratios, is refreshed at the
+  current optimum by :meth:`EffectProblem.refresh_hyperelastic` until the
+  moduli settle (so the final model is the full neo-Hookean one at the optimum).
+- sliding-bottom, probe-slip: another boundary partition of the same mesh.
+- compressibility: a reduced model over (mu_r, lam_r); nu is a parameter.
+- inclusion: the experiment's specimen with the located region added
+  (meshed anew); its modulus is a parameter like the others.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.optimize import minimize
+
+from app.core.effects import EFFECT_IDS, INFO, Parameter, check, parameters_of
+from app.core.effects.boundary import boundary_for
+from app.core.effects.compressibility import LameReducedModel, lame_theta
+from app.core.effects.viscoelastic import prony_force
+from app.core.errors import Cancelled, ElastoidError
+from app.core.fem import interpolation_matrix
+from app.core.forward import ReducedModel, build_model, region_terms, training_set
+from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, single_threaded_blas
+from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
+
+
+@dataclass
+class _HyperState:
+    theta_ref: np.ndarray  # moduli (kPa) the correction was computed at
+    g_ref: float  # linear force per mm at theta_ref
+    depths_mm: np.ndarray  # load steps
+    force_N: np.ndarray  # hyperelastic force at the load steps
+    corrections: dict = field(default_factory=dict)  # point-set name -> (k steps, n, 3) mm
+    solution: object = None
+
+
+class EffectProblem(Problem):
+    """A :class:`Problem` with effects. Build with :meth:`from_experiment`."""
+
+    def __init__(self, exp, mesh, fe, rm, *, effects=(), nu: float = 0.49, cost: str = "joint", frames,
+                 roi_px=None, force_weight: float = 1.0, bins: int = 32, inclusion: dict | None = None):
+        self.effects = check(effects)
+        self.n_regions = len(mesh.region_names)
+        self._points: dict[str, tuple] = {}
+        self._hyper: _HyperState | None = None
+        self._hyper_model = None
+        self._ctrl_P = None
+        super().__init__(exp, mesh, fe, rm, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
+                         force_weight=force_weight, bins=bins)
+        self.moduli_names = tuple(self.parameter_names)
+        self.extra_parameters: tuple[Parameter, ...] = parameters_of(self.effects)
+        self.parameter_names = self.moduli_names + tuple(p.name for p in self.extra_parameters)
+        self.inclusion = inclusion  # {"name", "center_mm", "radius_mm"} when the specimen got one
+        self.log_t = np.asarray(exp.force_log.time_s, float)
+
+    # --- construction -------------------------------------------------------
+    @classmethod
+    def from_experiment(cls, exp, *, effects=(), mesh: TetMesh | None = None,
+                        mesh_settings: MeshSettings | None = None, roi_px=None, frames=None, cost: str = "joint",
+                        nu: float = 0.49, force_weight: float = 1.0, bins: int = 32, base: Problem | None = None,
+                        inclusion: dict | None = None, progress: Callable[[str], None] | None = None,
+                        cancel: threading.Event | None = None, **_ignored) -> "EffectProblem":
+        """Mesh, assemble and train what the effects need. ``base``: a problem on the
+        same mesh whose FE model and reduced model are reused when the effects
+        leave them unchanged (viscoelastic, hyperelastic)."""
+        say = progress or (lambda s: None)
+        effects = check(effects)
+        if frames is None:
+            d0 = exp.frames[0].displacement_mm
+            frames = (0,) + tuple(i for i, f in enumerate(exp.frames) if i > 0 and f.displacement_mm > d0 + 1e-9)
+        frames = tuple(int(i) % len(exp.frames) for i in frames)
+        if len(frames) < 2:
+            raise ElastoidError("identification needs a source frame and at least one deformed frame")
+        if mesh is None and base is not None and base.mesh.region_names == exp.specimen.region_names:
+            mesh = base.mesh
+        if mesh is None:
+            mesh = specimen_mesh(exp, mesh_settings, progress=say, cancel=cancel)
+        boundary = boundary_for(effects)
+        same_fe = base is not None and base.mesh is mesh and base.fe.boundary == boundary
+        if same_fe:
+            fe = base.fe
+        else:
+            say("assembling the finite-element model")
+            op = base.fe.op if (base is not None and base.mesh is mesh) else None
+            fe = build_model(mesh, boundary, op=op)
+        if cancel is not None and cancel.is_set():
+            raise Cancelled("cancelled")
+        n = len(mesh.region_names)
+        free_nu = "compressibility" in effects
+        reuse_rm = same_fe and not free_nu and not isinstance(base.rm, LameReducedModel) and base.nu == nu
+        if reuse_rm:
+            rm = base.rm
+        else:
+            say("training the reduced model")
+            with single_threaded_blas():
+                if free_nu:
+                    rm = LameReducedModel(fe, n, nu)
+                    rm.train_default()
+                else:
+                    rm = ReducedModel(fe, region_terms(n, nu))
+                    rm.train(training_set(n))
+            say(f"reduced model: {rm.V.shape[1]} basis vectors")
+        return cls(exp, mesh, fe, rm, effects=effects, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
+                   force_weight=force_weight, bins=bins, inclusion=inclusion)
+
+    # --- parameters -----------------------------------------------------------
+    def defaults(self) -> dict:
+        """Starting values of the effect parameters."""
+        out = {p.name: p.default for p in self.extra_parameters}
+        if "tau1_s" in out:
+            # a relaxation time on the scale of the recording
+            out["tau1_s"] = float(np.clip(0.1 * (self.log_t[-1] - self.log_t[0]), 0.2, 100.0))
+        if "nu" in out:
+            out["nu"] = min(self.nu, 0.49)
+        return out
+
+    def complete(self, params: dict) -> dict:
+        """Every parameter by name: missing effect parameters at their defaults."""
+        out = self.defaults()
+        out.update({k: float(v) for k, v in params.items() if k in self.parameter_names})
+        missing = [n for n in self.moduli_names if n not in out]
+        if missing:
+            raise ElastoidError(f"no value for {', '.join(missing)}")
+        return {n: out[n] for n in self.parameter_names}
+
+    def moduli(self, params: dict) -> np.ndarray:
+        return np.array([params[n] for n in self.moduli_names], float)
+
+    def poisson(self, params: dict) -> float:
+        return float(params["nu"]) if "nu" in params and "compressibility" in self.effects else self.nu
+
+    def theta(self, params: dict) -> np.ndarray:
+        """Weights of the reduced model's terms."""
+        E = self.moduli(params)
+        if isinstance(self.rm, LameReducedModel):
+            return lame_theta(E, self.poisson(params))
+        return E
+
+    # --- points where the field is observed -----------------------------------
+    def add_points(self, name: str, world_mm: np.ndarray) -> None:
+        """Register material points (world mm, in the source frame's configuration)
+        at which :meth:`displacement_px` evaluates the model."""
+        pts = np.clip(np.asarray(world_mm, float), 0.0, np.asarray(self.exp.specimen.size_mm))
+        P = interpolation_matrix(self.fe.space, pts)
+        self._points[name] = (pts, self.rm.point_operator(pts), P)
+        if self._hyper is not None:
+            self._hyper.corrections[name] = self._hyper_correction(P)
+
+    def displacement_px(self, params: dict, name: str, pair, a=None) -> np.ndarray:
+        """Displacement (n, 2) px (col, row) of registered points from the pair's
+        source frame to its target frame."""
+        pts, op, _ = self._points[name]
+        if a is None:
+            a = self.rm.coords(self.theta(params))
+        u = op.values(a)
+        dd = pair.d_target_mm - pair.d_source_mm
+        disp = dd * np.column_stack([u @ self._lat, -1.0 - u[:, 2]])
+        if self._hyper is not None and "hyperelastic" in self.effects:
+            c = self._pair_correction(name, pair)
+            disp = disp + np.column_stack([c @ self._lat, -c[:, 2]])
+        return disp / np.array([self._sc, self._sr])
+
+    # --- force ----------------------------------------------------------------
+    def elastic_force_N(self, params: dict, a=None) -> np.ndarray:
+        """Elastic (time-independent) force over the log, N."""
+        g = self.rm.force_N_per_mm(self.theta(params), a)
+        F = g * self.log_d
+        if "hyperelastic" in self.effects and self._hyper is not None:
+            F = F * self._hyper_force_ratio(self.log_d)
+        return F
+
+    def model_force_N(self, params: dict, a=None) -> np.ndarray:
+        params = self.complete(params)
+        F = self.elastic_force_N(params, a)
+        if "viscoelastic" in self.effects:
+            F = prony_force(self.log_t, F, params["g1"], params["tau1_s"])
+        return F
+
+    # --- images ---------------------------------------------------------------
+    def _coarse_field(self, pair, a):
+        out = super()._coarse_field(pair, a)
+        if self._hyper is not None and "hyperelastic" in self.effects:
+            c = self._pair_correction("__ctrl__", pair)
+            px = np.column_stack([(c @ self._lat) / self._sc, -c[:, 2] / self._sr])
+            out = out + (pair.warp.M @ px).reshape(out.shape)
+        return out
+
+    def control_displacement_px(self, a, pair):
+        out = super().control_displacement_px(a, pair)
+        if self._hyper is not None and "hyperelastic" in self.effects:
+            c = self._pair_correction("__ctrl__", pair)
+            out = out + np.column_stack([(c @ self._lat) / self._sc, -c[:, 2] / self._sr])
+        return out
+
+    def warped_source(self, params: dict, target: int | None = None):
+        params = self.complete(params)
+        a = self.rm.coords(self.theta(params))
+        pair = self.pairs[0] if target is None else next(p for p in self.pairs if p.target == target)
+        w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))
+        return w, pair.target_roi, self.roi, pair.mask
+
+    def evaluate(self, params: dict) -> dict:
+        """Cost parts: total, nmi (mean over frame pairs, in [1, 2]), force_rms_N."""
+        params = self.complete(params)
+        with single_threaded_blas():
+            a = self.rm.coords(self.theta(params))
+            vals = []
+            for pair in self.pairs:
+                w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))
+                vals.append(pair.nmi(w[pair.mask]))
+            nmi = float(np.mean(vals))
+            resid = self.model_force_N(params, a) - self.log_F
+            frms = float(np.sqrt(np.mean(resid**2)))
+        self.n_evaluations += 1
+        total = -nmi
+        if self.cost_kind == "joint":
+            total += self.force_weight * (frms / self.force_scale_N) ** 2
+        return {"total": total, "nmi": nmi, "force_rms_N": frms}
+
+    def deformed_points(self, params: dict, displacement_mm: float) -> np.ndarray:
+        params = self.complete(params)
+        a = self.rm.coords(self.theta(params))
+        u = self.rm.full_field(a).reshape(-1, 3)[: self.mesh.n_nodes]
+        return self.mesh.points_mm + displacement_mm * u
+
+    def identifiability(self, params: dict):
+        """The moduli's identifiability (effect parameters held at their values)."""
+        params = self.complete(params)
+        extra = {p.name: params[p.name] for p in self.extra_parameters}
+        if not extra and not isinstance(self.rm, LameReducedModel):
+            return super().identifiability(params)
+        return None
+
+    # --- hyperelastic ------------------------------------------------------------
+    def load_steps_mm(self, max_step_mm: float | None = None) -> np.ndarray:
+        """Probe travels of the hyperelastic load steps: every frame's travel and
+        the log's deepest, with steps no longer than ``max_step_mm`` (default: a
+        twentieth of the specimen's height)."""
+        h = self.exp.specimen.size_mm[2]
+        step = max_step_mm or h / 20.0
+        marks = sorted({round(float(x), 9) for x in [self.log_d.max()] + [f.displacement_mm for f in self.exp.frames]
+                        if x > 1e-9})
+        out, prev = [], 0.0
+        for m in marks:
+            n = max(1, int(math.ceil((m - prev) / step - 1e-9)))
+            out.extend(prev + (m - prev) * np.arange(1, n + 1) / n)
+            prev = m
+        return np.array(out)
+
+    def refresh_hyperelastic(self, params: dict, progress: Callable[[str], None] | None = None,
+                             cancel: threading.Event | None = None) -> None:
+        """Solve the neo-Hookean model along the load path at ``params`` and use it
+        as the nonlinear correction of later evaluations."""
+        from app.core.hyperelastic import HyperelasticModel
+
+        params = self.complete(params)
+        if self._hyper_model is None:
+            self._hyper_model = HyperelasticModel(self.fe)
+        E = self.moduli(params)
+        steps = self.load_steps_mm()
+        if progress:
+            progress(f"hyperelastic solve: {len(steps)} load steps to {steps[-1]:.1f} mm")
+        sol = self._hyper_model.solve(E, self.poisson(params), steps, cancel=cancel)
+        a = self.rm.coords(self.theta(params))
+        g = self.rm.force_N_per_mm(self.theta(params), a)
+        u_lin = self.rm.full_field(a)
+        self._hyper = _HyperState(E, g, steps, sol.force_N, {}, sol)
+        self._u_lin_ref = u_lin
+        if self._ctrl_P is None:
+            self._ctrl_P = interpolation_matrix(self.fe.space, self.ctrl_world)
+        self._hyper.corrections["__ctrl__"] = self._hyper_correction(self._ctrl_P)
+        for name, (_, _, P) in self._points.items():
+            self._hyper.corrections[name] = self._hyper_correction(P)
+
+    def _hyper_correction(self, P) -> np.ndarray:
+        h = self._hyper
+        uH = np.stack([(P @ u).reshape(-1, 3) for u in h.solution.fields])
+        ul = (P @ self._u_lin_ref).reshape(-1, 3)
+        return uH - h.depths_mm[:, None, None] * ul[None]
+
+    def _correction_at(self, name: str, d: float) -> np.ndarray:
+        h = self._hyper
+        C = h.corrections[name]
+        if d <= 1e-12:
+            return np.zeros(C.shape[1:])
+        dd = np.concatenate([[0.0], h.depths_mm])
+        k = int(np.searchsorted(dd, d - 1e-9))
+        if k < len(dd) and abs(dd[k] - d) < 1e-6:
+            return C[k - 1]
+        # between steps: quadratic in d through the neighbouring steps (the correction is O(d^2))
+        k = min(max(k, 1), len(dd) - 1)
+        w = (d - dd[k - 1]) / (dd[k] - dd[k - 1])
+        lo = C[k - 2] if k >= 2 else np.zeros(C.shape[1:])
+        return (1 - w) * lo + w * C[k - 1]
+
+    def _pair_correction(self, name: str, pair) -> np.ndarray:
+        return self._correction_at(name, pair.d_target_mm) - self._correction_at(name, pair.d_source_mm)
+
+    def _hyper_force_ratio(self, d_mm: np.ndarray) -> np.ndarray:
+        h = self._hyper
+        from scipy.interpolate import PchipInterpolator
+
+        dd = np.concatenate([[0.0], h.depths_mm])
+        ratio = np.concatenate([[1.0], h.force_N / (h.g_ref * h.depths_mm)])
+        d = np.clip(np.asarray(d_mm, float), 0.0, dd[-1])
+        return PchipInterpolator(dd, ratio)(d)
+
+
+# ---------------------------------------------------------------------------
+# fitting
+# ---------------------------------------------------------------------------
+
+
+def _to_x(p: Parameter | None, v: float) -> float:
+    if p is None or p.scale == "log":
+        return math.log(max(v, 1e-300))
+    t = (v - p.lower) / (p.upper - p.lower)
+    t = min(max(t, 1e-9), 1 - 1e-9)
+    return math.log(t / (1 - t))
+
+
+def _from_x(p: Parameter | None, x: float, bounds=BOUNDS_KPA) -> float:
+    if p is None or p.scale == "log":
+        lo, hi = (bounds if p is None else (p.lower, p.upper))
+        return float(math.exp(min(max(x, math.log(lo)), math.log(hi))))
+    return float(p.lower + (p.upper - p.lower) / (1 + math.exp(-min(max(x, -40.0), 40.0))))
+
+
+@dataclass
+class FitResult:
+    parameters: dict
+    cost: dict  # the problem's cost parts at the optimum (total, nmi, force_rms_N)
+    objective: float  # the minimized objective
+    evaluations: int
+    seconds: float
+
+
+def fit(problem: EffectProblem, start: dict, *, objective: Callable[[dict], float] | None = None,
+        free: tuple | None = None, progress: Callable[[EvalReport], None] | None = None,
+        cancel: threading.Event | None = None, max_evaluations: int = 300, xatol: float = 2e-3,
+        fatol: float = 1e-6, step: float = 0.3, start_index: int = 0) -> FitResult:
+    """Nelder-Mead from ``start`` over the ``free`` parameters (default: all) in
+    transformed coordinates (log for moduli and times, logit for bounded ones).
+
+    ``objective(params) -> float`` defaults to the problem's cost total. Every
+    evaluation is reported to ``progress`` (with the problem's cost parts).
+    """
+    t0 = time.perf_counter()
+    params0 = problem.complete(start)
+    names = list(free) if free is not None else list(problem.parameter_names)
+    spec = {p.name: p for p in problem.extra_parameters}
+    count = [0]
+
+    def params_of(x):
+        p = dict(params0)
+        p.update({n: _from_x(spec.get(n), v) for n, v in zip(names, x)})
+        return p
+
+    def f(x):
+        if cancel is not None and cancel.is_set():
+            raise Cancelled("fit cancelled")
+        p = params_of(x)
+        if objective is None:
+            cost = problem.evaluate(p)
+            val = cost["total"]
+        else:
+            val = float(objective(p))
+            cost = {"total": val}
+        count[0] += 1
+        if progress:
+            progress(EvalReport(start_index, count[0], p, cost))
+        return val
+
+    x0 = np.array([_to_x(spec.get(n), params0[n]) for n in names])
+    if len(names) == 0:
+        p = params0
+        val = f(x0)
+    else:
+        simplex = np.vstack([x0] + [x0 + step * np.eye(len(names))[i] for i in range(len(names))])
+        res = minimize(f, x0, method="Nelder-Mead",
+                       options={"initial_simplex": simplex, "xatol": xatol, "fatol": fatol, "maxfev": max_evaluations})
+        p = params_of(res.x)
+        val = float(res.fun)
+    cost = problem.evaluate(p)
+    return FitResult(p, cost, val if objective is not None else cost["total"], count[0], time.perf_counter() - t0)
+
+
+def fit_hyperelastic(problem: EffectProblem, start: dict, *, rounds: int = 3, rtol: float = 0.01,
+                     progress_text: Callable[[str], None] | None = None, cancel=None, **kw) -> FitResult:
+    """Fit with the hyperelastic correction refreshed at each round's optimum until
+    the moduli change by less than ``rtol``."""
+    params = problem.complete(start)
+    total_evals, t0, res = 0, time.perf_counter(), None
+    for r in range(rounds):
+        problem.refresh_hyperelastic(params, progress=progress_text, cancel=cancel)
+        res = fit(problem, params, cancel=cancel, **kw)
+        total_evals += res.evaluations
+        change = np.max(np.abs(np.log(problem.moduli(res.parameters) / problem.moduli(params))))
+        params = res.parameters
+        if change < rtol:
+            break
+    problem.refresh_hyperelastic(params, cancel=cancel)
+    cost = problem.evaluate(params)
+    obj = kw.get("objective")
+    return FitResult(params, cost, obj(params) if obj else cost["total"], total_evals, time.perf_counter() - t0)
+
+
+def identify_with_effects(problem: EffectProblem, starts_kPa=(10.0, 30.0), *, fixed: dict | None = None,
+                          progress: Callable[[EvalReport], None] | None = None,
+                          cancel: threading.Event | None = None, max_evaluations: int = 300) -> Result:
+    """Multi-start identification of every free parameter of an EffectProblem (the
+    moduli start at each start value, the effect parameters at their defaults).
+    Returns an :class:`app.core.identify.Result` with the effects filled in."""
+    t0 = time.perf_counter()
+    fixed = dict(fixed or {})
+    free = tuple(n for n in problem.parameter_names if n not in fixed)
+    best, starts, evals = None, [], 0
+    for k, s in enumerate(starts_kPa):
+        start = {n: float(s) for n in problem.moduli_names}
+        start.update(fixed)
+        kw = dict(free=free, progress=progress, cancel=cancel, max_evaluations=max_evaluations, start_index=k)
+        if "hyperelastic" in problem.effects:
+            res = fit_hyperelastic(problem, start, **kw)
+        else:
+            res = fit(problem, start, **kw)
+        evals += res.evaluations
+        starts.append({"start_kPa": s, "parameters": res.parameters, "cost": res.cost, "evaluations": res.evaluations})
+        if best is None or res.cost["total"] < best.cost["total"]:
+            best = res
+    if "hyperelastic" in problem.effects:
+        problem.refresh_hyperelastic(best.parameters)
+    ident = problem.identifiability(best.parameters)
+    return Result(parameters=best.parameters, cost=best.cost, evaluations=evals, seconds=time.perf_counter() - t0,
+                  starts=starts, identifiability=ident, effects=problem.effects,
+                  experiment=str(problem.exp.path or ""))

@@ -1,0 +1,486 @@
+"""Large deformation with a compressible neo-Hookean law (the ``hyperelastic`` effect).
+
+Strain energy per reference volume (Bonet & Wood, eq. 6.27)
+
+    W(F) = mu / 2 (tr C - 3) - mu ln J + lam / 2 (ln J)^2,    C = F^T F, J = det F
+
+with the Lame parameters of each region's Young's modulus and the model's
+Poisson's ratio, so that for small strains it is the linear model exactly. The
+first Piola-Kirchhoff stress is P = mu (F - F^-T) + lam ln J F^-T.
+
+The probe travel is applied in load steps. At each step the equilibrium
+R(u) = f_int(u) = 0 on the free dofs is solved by a modified Newton iteration
+whose fixed matrix is the *linear* stiffness (one factorization, reused by
+every step and, across solves, by every moduli set near it), accelerated by
+Anderson mixing. The reaction on the probe is the probe's share of f_int.
+
+Like the linear field, the hyperelastic field under displacement control
+depends only on the ratios of the moduli, and the force scales with their level.
+
+Units: mm, kPa, N (f_int is in mN with kPa and mm).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from app.core.errors import Cancelled, ElastoidError
+from app.core.fem import QUAD_BARY, QUAD_W, coefficients, lame, shape_gradients
+from app.core.forward import MN_TO_N, FEModel
+from app.core.solver import Factorized
+
+
+# ---------------------------------------------------------------------------
+# the material law, on arrays of deformation gradients (..., 3, 3)
+# ---------------------------------------------------------------------------
+
+
+def _det_cof(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """det F and the cofactor matrix (J F^-T) of every 3 x 3 matrix."""
+    a, b, c = F[..., 0, 0], F[..., 0, 1], F[..., 0, 2]
+    d, e, f = F[..., 1, 0], F[..., 1, 1], F[..., 1, 2]
+    g, h, i = F[..., 2, 0], F[..., 2, 1], F[..., 2, 2]
+    cof = np.empty_like(F)
+    cof[..., 0, 0] = e * i - f * h
+    cof[..., 0, 1] = f * g - d * i
+    cof[..., 0, 2] = d * h - e * g
+    cof[..., 1, 0] = c * h - b * i
+    cof[..., 1, 1] = a * i - c * g
+    cof[..., 1, 2] = b * g - a * h
+    cof[..., 2, 0] = b * f - c * e
+    cof[..., 2, 1] = c * d - a * f
+    cof[..., 2, 2] = a * e - b * d
+    J = a * cof[..., 0, 0] + b * cof[..., 0, 1] + c * cof[..., 0, 2]
+    return J, cof
+
+
+def neo_hookean_stress(F: np.ndarray, mu, lam) -> np.ndarray:
+    """First Piola-Kirchhoff stress P (..., 3, 3) in kPa; mu, lam broadcast over F's leading axes."""
+    J, cof = _det_cof(F)
+    if np.any(J <= 0):
+        raise ValueError("inverted element (det F <= 0)")
+    FinvT = cof / J[..., None, None]
+    mu = np.asarray(mu, float)[..., None, None]
+    lam = np.asarray(lam, float)[..., None, None]
+    return mu * (F - FinvT) + (lam * np.log(J)[..., None, None]) * FinvT
+
+
+def neo_hookean_energy(F: np.ndarray, mu, lam) -> np.ndarray:
+    """Strain energy density W (...) in kPa (= mJ / mm^3 x 1e-3... i.e. kPa)."""
+    J, _ = _det_cof(F)
+    lnJ = np.log(J)
+    return 0.5 * mu * (np.einsum("...ij,...ij->...", F, F) - 3.0) - mu * lnJ + 0.5 * lam * lnJ**2
+
+
+def uniaxial_stress_kPa(stretch: float, youngs_kPa: float, nu: float) -> tuple[float, float]:
+    """Closed form of uniaxial loading of the neo-Hookean block: F = diag(a, a, s)
+    with free lateral faces. Returns (nominal stress P_33 kPa, lateral stretch a),
+    a from the scalar equation P_11(a) = mu (a - 1/a) + lam ln(a^2 s) / a = 0."""
+    from scipy.optimize import brentq
+
+    mu, lam = lame(youngs_kPa, nu)
+    s = float(stretch)
+
+    def p11(a):
+        return mu * (a - 1.0 / a) + lam * np.log(a * a * s) / a
+
+    a = brentq(p11, 1e-3, 1e3, xtol=1e-15, rtol=1e-15)
+    return mu * (s - 1.0 / s) + lam * np.log(a * a * s) / s, a
+
+
+# ---------------------------------------------------------------------------
+# the discrete problem
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HyperelasticSolution:
+    """Equilibria along the load path: one per probe travel in ``depths_mm``."""
+
+    depths_mm: np.ndarray  # (k,)
+    force_N: np.ndarray  # (k,) reaction on the probe (compression positive)
+    fields: np.ndarray  # (k, n_dofs) displacement mm
+    iterations: tuple  # per load step
+
+    def force_curve_N(self, displacement_mm) -> np.ndarray:
+        """Force at any travel, by monotone cubic interpolation of the solved steps
+        (zero travel -> zero force)."""
+        from scipy.interpolate import PchipInterpolator
+
+        d = np.concatenate([[0.0], self.depths_mm])
+        F = np.concatenate([[0.0], self.force_N])
+        x = np.clip(np.asarray(displacement_mm, float), 0.0, None)
+        inside = np.clip(x, 0.0, d[-1])
+        out = PchipInterpolator(d, F, extrapolate=True)(inside)
+        # beyond the last step: continue with the last secant stiffness
+        k_end = (F[-1] - F[-2]) / (d[-1] - d[-2])
+        return np.where(x > d[-1], F[-1] + k_end * (x - d[-1]), out)
+
+
+class _StepFailed(Exception):
+    """A load step did not converge (or its predictor inverted an element)."""
+
+
+class SymmetricFactor:
+    """Cholesky factor of an SPD matrix with a fixed sparsity pattern, refactorized
+    in place for new values (the ordering and symbolic analysis are done once).
+
+    MKL PARDISO through pypardiso's library handle, in single precision by
+    default: it serves as the fixed iteration matrix of a modified Newton method,
+    where half the memory and time matter and its 1e-6 accuracy does not. Without
+    MKL it falls back to :class:`app.core.solver.Factorized` (double precision).
+    """
+
+    def __init__(self, upper: sp.csr_matrix, single: bool = True, definite: bool = False):
+        from app.core import solver
+
+        self.n = upper.shape[0]
+        self._fallback = None
+        if not solver.HAVE_PARDISO:
+            self._fallback = Factorized(upper + sp.triu(upper, 1).T)
+            return
+        import ctypes
+
+        import pypardiso
+
+        self._ct = ctypes
+        self.mtype = 2 if definite else -2  # -2: symmetric indefinite (Bunch-Kaufman pivoting)
+        self._s = pypardiso.PyPardisoSolver(mtype=self.mtype)
+        self._s._mkl_pardiso.argtypes = None  # we pass float32 arrays in single precision
+        ip = self._s.iparm
+        ip[:] = 0
+        ip[0] = 1  # iparm given
+        ip[1] = 2  # METIS nested dissection
+        ip[9] = 8  # pivot perturbation 1e-8
+        ip[34] = 0  # one-based indices
+        ip[27] = 1 if single else 0
+        self.dtype = np.float32 if single else np.float64
+        self._ia = (upper.indptr + 1).astype(np.int32)
+        self._ja = (upper.indices + 1).astype(np.int32)
+        self._data = upper.data.astype(self.dtype)
+        self._call(11, np.zeros(self.n, self.dtype))
+        self._call(22, np.zeros(self.n, self.dtype))
+
+    def _call(self, phase: int, b: np.ndarray) -> np.ndarray:
+        ct = self._ct
+        x = np.zeros_like(b)
+        err = ct.c_int32(0)
+        i32 = ct.POINTER(ct.c_int32)
+        s = self._s
+        nrhs = 1 if b.ndim == 1 else b.shape[1]
+        s._mkl_pardiso(s.pt.ctypes.data_as(ct.POINTER(s._pt_type[0])), ct.byref(ct.c_int32(1)),
+                       ct.byref(ct.c_int32(1)), ct.byref(ct.c_int32(self.mtype)), ct.byref(ct.c_int32(phase)),
+                       ct.byref(ct.c_int32(self.n)), self._data.ctypes.data_as(ct.c_void_p),
+                       self._ia.ctypes.data_as(i32), self._ja.ctypes.data_as(i32), s.perm.ctypes.data_as(i32),
+                       ct.byref(ct.c_int32(nrhs)), s.iparm.ctypes.data_as(i32), ct.byref(ct.c_int32(0)),
+                       b.ctypes.data_as(ct.c_void_p), x.ctypes.data_as(ct.c_void_p), ct.byref(err))
+        if err.value != 0:
+            raise ElastoidError(f"PARDISO failed (error {err.value})")
+        return x
+
+    def refactor(self, upper_data: np.ndarray) -> None:
+        """New values on the same pattern: numeric factorization only."""
+        if self._fallback is not None:
+            raise NotImplementedError
+        self._data = np.ascontiguousarray(upper_data, self.dtype)
+        self._call(22, np.zeros(self.n, self.dtype))
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self._fallback is not None:
+            return self._fallback.solve(b)
+        return self._call(33, np.ascontiguousarray(b, self.dtype)).astype(np.float64)
+
+    def free(self) -> None:
+        if self._fallback is not None:
+            self._fallback.free()
+        elif self._s is not None:
+            self._call(-1, np.zeros(self.n, self.dtype))
+            self._s = None
+
+
+@dataclass
+class _Preconditioner:
+    factor: SymmetricFactor
+    ratios: np.ndarray  # moduli ratios (to the first region) it was built for
+    scale: float  # modulus of the first region it was built with
+
+
+class HyperelasticModel:
+    """Neo-Hookean equilibria on an FE model's mesh, P2 space and boundary
+    partition (the same as the linear model's).
+
+    Each load step is solved by Anderson-accelerated modified Newton: the fixed
+    matrix is a factorized tangent. A solve reuses the tangents that earlier
+    solves left at each load step (for nearby moduli ratios), so in a fit only
+    the first solve pays for factorizations; a step that converges slowly
+    refactorizes at its current iterate (a Newton step) and keeps the new factor.
+
+    ``tol``: relative residual (free-dof internal force over the probe-dof
+    internal force) at which a load step has converged.
+    """
+
+    def __init__(self, fe: FEModel, tol: float = 1e-6, max_iterations: int = 60, anderson_depth: int = 5,
+                 reform_rate: float = 0.35, single: bool = True):
+        self.fe = fe
+        self.tol, self.max_iterations, self.depth = tol, max_iterations, anderson_depth
+        self.reform_rate, self.single = reform_rate, single
+        space = fe.space
+        self.elems = space.elems
+        self.n_dofs = space.n_dofs
+        m = len(self.elems)
+        # shape-function gradients in the reference configuration (m, q, 10, 3)
+        self.dN = np.ascontiguousarray(shape_gradients(QUAD_BARY, space.grad_bary, space.degree))
+        self.wV = space.volumes_mm3[:, None] * QUAD_W[None, :]  # (m, q)
+        self.dofs = (3 * self.elems[:, :, None] + np.arange(3)).reshape(m, -1)  # (m, 30)
+        self._setup_pattern()
+        self._cache: dict[float, _Preconditioner] = {}
+        self.n_factorizations = 0
+        self.n_back_solves = 0
+        self.n_residuals = 0
+        self.trace: list = []
+
+    # --- sparsity: element entries -> upper triangle of the free-free block -----
+    def _setup_pattern(self):
+        fe, op = self.fe, self.fe.op
+        n = self.n_dofs
+        # position of every CSR entry of the free-free block in the full pattern
+        ff_rows = np.repeat(np.arange(len(fe.free)), np.diff(fe._ff_pattern[1]))
+        ff_cols = fe._ff_pattern[0]
+        upper = ff_cols >= ff_rows
+        self._ffu_indptr = np.concatenate([[0], np.cumsum(np.bincount(ff_rows[upper], minlength=len(fe.free)))])
+        self._ffu_indices = ff_cols[upper]
+        n_ffu = int(upper.sum())
+        full_to_ffu = np.full(len(op.indices), n_ffu, np.int64)  # n_ffu: not in the upper free-free block
+        full_to_ffu[fe._pos_ff[upper]] = np.arange(n_ffu)
+        # CSR position of every element entry (e, a i, b k) in the full pattern: keys sorted row-major
+        rows_full = np.repeat(np.arange(n), np.diff(op.indptr))
+        csr_keys = rows_full.astype(np.int64) * n + op.indices
+        d = self.dofs
+        pos = np.empty((len(d), 30, 30), np.int32)
+        for a in range(30):  # row by row keeps the temporaries small
+            keys = d[:, a, None].astype(np.int64) * n + d
+            p = np.searchsorted(csr_keys, keys)
+            pos[:, a, :] = full_to_ffu[p]
+        self._pos = pos.ravel()
+        self._n_ffu = n_ffu
+
+    # --- pieces ----------------------------------------------------------------
+    def element_moduli(self, youngs_kPa, nu: float) -> tuple[np.ndarray, np.ndarray]:
+        lab = self.fe.space.labels
+        mus, lams = np.array([lame(float(E), nu) for E in youngs_kPa]).T
+        return mus[lab], lams[lab]
+
+    def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
+        """F (m, q, 3, 3) at the quadrature points."""
+        Ue = u[self.dofs].reshape(len(self.elems), -1, 3)  # (m, 10, 3)
+        F = np.einsum("mai,mqaJ->mqiJ", Ue, self.dN, optimize=True)
+        F[..., 0, 0] += 1.0
+        F[..., 1, 1] += 1.0
+        F[..., 2, 2] += 1.0
+        return F
+
+    def internal_force(self, u: np.ndarray, mu_e: np.ndarray, lam_e: np.ndarray) -> np.ndarray:
+        """f_int (n_dofs,) in mN: the derivative of the stored energy."""
+        self.n_residuals += 1
+        P = neo_hookean_stress(self.deformation_gradient(u), mu_e[:, None], lam_e[:, None])
+        fe = np.einsum("mq,mqiJ,mqaJ->mai", self.wV, P, self.dN, optimize=True)
+        return np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.n_dofs)
+
+    def energy(self, u: np.ndarray, mu_e: np.ndarray, lam_e: np.ndarray) -> float:
+        """Stored energy in kPa mm^3 (= uJ)."""
+        W = neo_hookean_energy(self.deformation_gradient(u), mu_e[:, None], lam_e[:, None])
+        return float(np.sum(self.wV * W))
+
+    def element_tangents(self, u: np.ndarray, mu_e: np.ndarray, lam_e: np.ndarray) -> np.ndarray:
+        """Element tangent stiffness (m, 10, 3, 10, 3) in mN/mm.
+
+        With H = F^-T and h_a = H grad N_a:
+        K[a i, b k] = int mu delta_ik grad N_a . grad N_b + (mu - lam ln J) h_ak h_bi + lam h_ai h_bk.
+        """
+        F = self.deformation_gradient(u)
+        J, cof = _det_cof(F)
+        if np.any(J <= 0):
+            raise ValueError("inverted element (det F <= 0)")
+        H = cof / J[..., None, None]
+        h = np.einsum("mqIJ,mqaJ->mqaI", H, self.dN, optimize=True)
+        w_mu = self.wV * mu_e[:, None]
+        w2 = self.wV * (mu_e[:, None] - lam_e[:, None] * np.log(J))
+        w3 = self.wV * lam_e[:, None]
+        m, q = w2.shape
+        S = np.einsum("mq,mqaJ,mqbJ->mab", w_mu, self.dN, self.dN, optimize=True)
+        X = h.reshape(m, q, 30)  # columns (a, k)
+        XT = np.ascontiguousarray(X.transpose(0, 2, 1))
+        K = (XT @ (w3[:, :, None] * X)).reshape(m, 10, 3, 10, 3)  # lam h_ai h_bk
+        K2 = (XT @ (w2[:, :, None] * X)).reshape(m, 10, 3, 10, 3)  # [a, k, b, i]
+        K += K2.transpose(0, 1, 4, 3, 2)
+        for i in range(3):
+            K[:, :, i, :, i] += S
+        return K
+
+    def tangent_upper(self, u, mu_e, lam_e) -> np.ndarray:
+        """Values of the upper triangle of the free-free tangent (CSR order)."""
+        K = self.element_tangents(u, mu_e, lam_e)
+        return np.bincount(self._pos, weights=K.ravel(), minlength=self._n_ffu + 1)[: self._n_ffu]
+
+    def _upper_matrix(self, data) -> sp.csr_matrix:
+        n = len(self.fe.free)
+        return sp.csr_matrix((data, self._ffu_indices, self._ffu_indptr), shape=(n, n))
+
+    def _factor(self, data) -> SymmetricFactor:
+        self.n_factorizations += 1
+        return SymmetricFactor(self._upper_matrix(data), single=self.single)
+
+    def free(self) -> None:
+        for p in self._cache.values():
+            p.factor.free()
+        self._cache.clear()
+
+    # --- solve -----------------------------------------------------------------
+    def solve(self, youngs_kPa, nu: float, depths_mm, *, progress: Callable[[int, int], None] | None = None,
+              cancel: threading.Event | None = None) -> HyperelasticSolution:
+        """Equilibria at increasing probe travels ``depths_mm`` (the load steps).
+
+        ``progress(step, n_steps)`` after each step; ``cancel`` stops between iterations.
+        """
+        fe = self.fe
+        theta = np.asarray(youngs_kPa, float)
+        depths = np.asarray(depths_mm, float)
+        if np.any(np.diff(depths) <= 0) or depths[0] <= 0:
+            raise ElastoidError("load steps must be increasing positive probe travels")
+        mu_e, lam_e = self.element_moduli(theta, nu)
+        ratios = theta / theta[0]
+        free, fixed = fe.free, fe.fixed
+        prev: list[np.ndarray] = []
+        forces, fields, iters = [], [], []
+        done_d: list[float] = []
+        todo = list(depths)
+        k = 0
+        n_sub = 0
+        while todo:
+            d = todo[0]
+            try:
+                u, n_it = self._step(d, done_d, prev, theta, ratios, nu, mu_e, lam_e, cancel)
+            except _StepFailed:
+                # bisect: an intermediate load step first (kept out of the result)
+                d_prev = done_d[-1] if done_d else 0.0
+                n_sub += 1
+                if n_sub > 8 * len(depths):
+                    raise ElastoidError(f"the hyperelastic solve failed near {d:g} mm of probe travel") from None
+                todo.insert(0, 0.5 * (d_prev + d))
+                continue
+            todo.pop(0)
+            done_d.append(d)
+            prev.append(u.copy())
+            if any(abs(d - x) < 1e-12 for x in depths):
+                f = self.internal_force(u, mu_e, lam_e)
+                forces.append(-float(fe.probe_z @ f[fixed]) * MN_TO_N)
+                fields.append(u.copy())
+                iters.append(n_it)
+                k += 1
+                if progress:
+                    progress(k, len(depths))
+        return HyperelasticSolution(depths, np.array(forces), np.array(fields), tuple(iters))
+
+    def _step(self, d, done_d, prev, theta, ratios, nu, mu_e, lam_e, cancel):
+        """One load step from the last converged ones (extrapolated predictor)."""
+        fe = self.fe
+        free, fixed = fe.free, fe.fixed
+        if len(prev) >= 2:  # quadratic extrapolation through 0 and the last two steps
+            d0, d1 = done_d[-2], done_d[-1]
+            a1 = (prev[-1] / d1 - prev[-2] / d0) / (d1 - d0)
+            u = (a1 * d + (prev[-1] / d1 - a1 * d1)) * d
+        elif prev:
+            u = prev[-1] * (d / done_d[-1])
+        else:
+            u = np.zeros(self.n_dofs)
+        u[fixed] = d * fe.lift
+        pre = self._nearest(d, ratios)
+        if pre is None:  # no tangent near this step yet: the linear stiffness
+            pre = self._linear_preconditioner(theta, nu)
+        if not prev:  # the linear solution
+            _, b, _, _ = fe.term_blocks(coefficients(ratios, nu))
+            u[free] = d * self._linear_preconditioner(theta, nu).factor.solve(b)
+        return self._equilibrate(u, d, theta, ratios, mu_e, lam_e, pre, cancel)
+
+    def _nearest(self, d: float, ratios: np.ndarray) -> _Preconditioner | None:
+        best, dist = None, np.inf
+        for dk, p in self._cache.items():
+            if dk <= 0 or np.max(np.abs(np.log(ratios / p.ratios))) > np.log(1.5):
+                continue
+            if abs(dk - d) < dist:
+                best, dist = p, abs(dk - d)
+        return best
+
+    def _linear_preconditioner(self, theta, nu) -> _Preconditioner:
+        ratios = theta / theta[0]
+        p = self._cache.get(0.0)
+        if p is None or np.max(np.abs(np.log(ratios / p.ratios))) > np.log(1.5):
+            if p is not None:
+                p.factor.free()
+            u0 = np.zeros(self.n_dofs)
+            mu_e, lam_e = self.element_moduli(ratios, nu)
+            p = _Preconditioner(self._factor(self.tangent_upper(u0, mu_e, lam_e)), ratios, 1.0)
+            self._cache[0.0] = p
+        return p
+
+    def _equilibrate(self, u, d, theta, ratios, mu_e, lam_e, pre: _Preconditioner, cancel):
+        """Anderson-accelerated modified Newton on the free dofs. When the
+        iteration is slow, the tangent at the current iterate is factorized (a
+        Newton step) and kept for this load step."""
+        free, fixed = self.fe.free, self.fe.fixed
+        x = u[free].copy()
+        X, G, hist = [], [], []
+        ref, last_good = None, None
+        for it in range(1, self.max_iterations + 1):
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("hyperelastic solve cancelled")
+            u[free] = x
+            try:
+                f = self.internal_force(u, mu_e, lam_e)
+            except ValueError:  # an inverted element: back towards the last good iterate
+                if last_good is None:
+                    raise _StepFailed(d) from None
+                x = 0.5 * (x + last_good)
+                X, G = [], []
+                continue
+            r = f[free]
+            if ref is None:
+                ref = max(np.linalg.norm(f[fixed]), 1e-300)
+            hist.append(np.linalg.norm(r) / ref)
+            self.trace.append((d, hist[-1]))
+            if hist[-1] <= self.tol:
+                return u, it
+            last_good = x.copy()
+            slow = (len(hist) > 3 and hist[-1] > self.reform_rate ** 3 * hist[-4]) or hist[-1] > 2 * min(hist)
+            if slow:
+                data = self.tangent_upper(u, mu_e, lam_e) / theta[0]
+                own = self._cache.get(d)
+                if own is not None:
+                    own.factor.refactor(data)
+                    self.n_factorizations += 1
+                    own.ratios, own.scale = ratios, 1.0
+                    pre = own
+                else:
+                    pre = self._cache[d] = _Preconditioner(self._factor(data), ratios, 1.0)
+                X, G, hist = [], [], [hist[-1]]
+                self.trace.append((d, "reform"))
+            self.n_back_solves += 1
+            g = -pre.factor.solve(r) / (theta[0] * pre.scale)
+            X.append(x.copy())
+            G.append(g)
+            if len(X) > self.depth + 1:
+                X.pop(0)
+                G.pop(0)
+            if len(G) >= 2:
+                dG = np.column_stack([G[j + 1] - G[j] for j in range(len(G) - 1)])
+                dX = np.column_stack([X[j + 1] - X[j] for j in range(len(X) - 1)])
+                gamma, *_ = np.linalg.lstsq(dG, g, rcond=None)
+                x = x + g - (dX + dG) @ gamma
+            else:
+                x = x + g
+        raise _StepFailed(d)

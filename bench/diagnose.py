@@ -1,0 +1,107 @@
+"""Model check at paper size: one hyperelastic forward solve and a full diagnosis
+of the demo experiment (resources/demo: ~2,200 vertices, P2, ~46,000 dofs).
+
+    /work/venv/bin/python bench/diagnose.py [--repeats 3] [--skip-diagnose] [--skip-hyperelastic]
+                                            [--candidates a,b,...]
+
+Prints a table of medians over repeats. Targets: a hyperelastic forward solve
+(all load steps to the demo's deepest travel, with the factorizations an
+earlier solve left, as inside a fit) in at most 2 s; a full diagnosis in at
+most 2 minutes. The first (cold) hyperelastic solve, which factorizes its
+tangents, is reported separately.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def bench_hyperelastic(repeats: int) -> list[tuple[str, float, str]]:
+    import numpy as np
+
+    from app.core.experiment import read_experiment
+    from app.core.forward import build_model
+    from app.core.hyperelastic import HyperelasticModel
+    from app.core.mesh import specimen_mesh
+
+    exp = read_experiment(ROOT / "resources" / "demo")
+    mesh = specimen_mesh(exp)
+    fe = build_model(mesh)
+    _, g = fe.solve([18.0, 63.0])
+    depths = sorted({f.displacement_mm for f in exp.frames if f.displacement_mm > 0}
+                    | {float(exp.force_log.displacement_mm.max())})
+    steps = np.unique(np.concatenate([np.linspace(0, max(depths), 5)[1:], depths]))
+    rows = []
+    t = time.perf_counter()
+    hm = HyperelasticModel(fe)
+    rows.append(("hyperelastic setup (element data, sparsity)", time.perf_counter() - t, f"{fe.space.n_dofs} dofs"))
+    t = time.perf_counter()
+    sol = hm.solve([18.0, 63.0], 0.49, steps)
+    cold = time.perf_counter() - t
+    rows.append(("hyperelastic solve, cold (factorizes tangents)", cold,
+                 f"{len(steps)} steps to {steps[-1]:.1f} mm, {hm.n_factorizations} factorizations, "
+                 f"F/F_linear {sol.force_N[-1] / (g * steps[-1]):.3f}"))
+    times, its = [], []
+    rng = np.random.default_rng(0)
+    for _ in range(repeats):
+        E = [18.0 * rng.uniform(0.9, 1.1), 63.0 * rng.uniform(0.9, 1.1)]
+        nf = hm.n_factorizations
+        t = time.perf_counter()
+        s = hm.solve(E, 0.49, steps)
+        times.append(time.perf_counter() - t)
+        its.append(f"{sum(s.iterations)} it/{hm.n_factorizations - nf} fact")
+    rows.append(("hyperelastic solve, warm (median)", statistics.median(times),
+                 f"moduli +-10%; {', '.join(its)}"))
+    hm.free()
+    return rows
+
+
+def bench_diagnose(repeats: int, candidates) -> list[tuple[str, float, str]]:
+    from app.core.diagnose import diagnose
+    from app.core.experiment import read_experiment
+
+    exp = read_experiment(ROOT / "resources" / "demo")
+    times, verdicts, per = [], [], {}
+    for _ in range(repeats):
+        t = time.perf_counter()
+        d = diagnose(exp, candidates=candidates)
+        times.append(time.perf_counter() - t)
+        verdicts.append(d.verdict)
+        for c in d.candidates:
+            per.setdefault(c.effect, []).append(c.seconds)
+    rows = [("full diagnosis of the demo (median)", statistics.median(times),
+             f"verdict {', '.join(verdicts)}")]
+    for e, ts in per.items():
+        rows.append((f"  candidate {e}", statistics.median(ts), ""))
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--skip-diagnose", action="store_true")
+    ap.add_argument("--skip-hyperelastic", action="store_true")
+    ap.add_argument("--candidates", default="", help="effects to try in the diagnosis (default: all)")
+    args = ap.parse_args(argv)
+    rows = []
+    if not args.skip_hyperelastic:
+        rows += bench_hyperelastic(args.repeats)
+    if not args.skip_diagnose:
+        cands = [c for c in args.candidates.split(",") if c] or None
+        rows += bench_diagnose(max(1, min(args.repeats, 2)), cands)
+    width = max(len(r[0]) for r in rows)
+    print(f"{'what':{width}s} {'seconds':>9s}  notes")
+    for name, sec, note in rows:
+        print(f"{name:{width}s} {sec:9.2f}  {note}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

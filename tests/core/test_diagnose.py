@@ -1,0 +1,108 @@
+"""Diagnosis on synthetic experiments with a hidden effect (made by the simulator
+on a finer mesh than identification uses), on data without one, and the
+version history.
+
+Meshes are coarse on purpose (a few thousand vertices) to keep the suite short;
+the candidate list of the fast tests is the three cheapest effects, the full
+list runs in the tests marked slow.
+"""
+
+import threading
+
+import pytest
+
+from app.core.diagnose import ModelCheck, ModelHistory, diagnose
+from app.core.experiment import read_experiment
+from app.core.geometry import Region
+from app.core.mesh import MeshSettings
+from app.core.simulate import SyntheticSpec, read_truth, simulate_experiment
+
+ID_MESH = MeshSettings(edge_mm=6.0, probe_edge_mm=2.5, region_edge_mm=2.5)
+BASE = dict(size_mm=(40.0, 40.0, 30.0),
+            regions=(Region("B", "background"), Region("A", "sphere", center_mm=(20.0, 20.0, 18.0), radius_mm=7.0)),
+            moduli_kPa={"B": 15.0, "A": 45.0}, face_mm=(24.0, 8.0), depth_mm=5.0, frames_at_mm=(0.0, 2.5, 5.0),
+            image_shape=(128, 120), truth_mesh=ID_MESH.with_scale(0.7))
+FAST = ("viscoelastic", "sliding-bottom", "probe-slip")
+
+
+def _make(tmp_path_factory, name, seed, **kw):
+    folder = tmp_path_factory.mktemp(f"{name}{seed}") / "exp"
+    simulate_experiment(folder, SyntheticSpec(seed=seed, **{**BASE, **kw}), overwrite=True)
+    return read_experiment(folder)
+
+
+def _moduli_errors(params, truth):
+    return {k: params[f"E_{k}_kPa"] / v - 1 for k, v in truth.items()}
+
+
+@pytest.fixture(scope="module")
+def visco(tmp_path_factory):
+    exp = _make(tmp_path_factory, "visco", 4, effects=("viscoelastic",), g1=0.35, tau1_s=2.0, hold_s=6.0)
+    return exp, diagnose(exp, candidates=FAST, mesh_settings=ID_MESH)
+
+
+def test_hidden_viscoelasticity_is_named_and_adding_it_fixes_the_model(visco):
+    exp, d = visco
+    truth = read_truth(exp.path)
+    assert d.verdict == "viscoelastic", d.lines()
+    assert d.rank_of("viscoelastic") == 1
+    c = d.candidate("viscoelastic")
+    assert d.baseline.misfit["force_rms_N"] / c.misfit["force_rms_N"] >= 3.0
+    for region, err in _moduli_errors(c.parameters, truth["moduli_kPa"]).items():
+        assert abs(err) < 0.10, (region, err)
+    assert c.parameters["g1"] == pytest.approx(0.35, rel=0.15)
+    assert "relaxes" in c.evidence and "constant" in c.evidence
+    payload = d.to_json_dict()
+    assert payload["verdict"] == "viscoelastic" and payload["candidates"][0]["effect"] == "viscoelastic"
+    assert {"total", "nmi", "force_rms_N"} <= set(payload["candidates"][0]["cost"])
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_no_hidden_effect_gives_none(tmp_path_factory, seed):
+    exp = _make(tmp_path_factory, "none", seed)
+    d = diagnose(exp, candidates=FAST, mesh_settings=ID_MESH)
+    assert d.verdict == "none", d.lines()
+
+
+def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
+    exp, _ = visco
+    mc = ModelCheck(exp, mesh_settings=ID_MESH)
+    v0 = mc.identify(())
+    cmp0 = mc.compare()
+    assert len(cmp0.force_model_N) == len(exp.force_log.force_N)
+    assert set(cmp0.region_share) == {"B", "A"} and sum(cmp0.region_share.values()) == pytest.approx(1.0)
+    assert cmp0.frames[0].residual_map.shape == cmp0.frames[0].target_roi.shape
+    d = mc.diagnose(candidates=("viscoelastic", "probe-slip"))
+    assert d.verdict == "viscoelastic"
+    v1 = mc.add()
+    assert v1.effects == ("viscoelastic",) and v1.parent == 0
+    errs = mc.history.errors()
+    assert errs["label"] == ["baseline", "+ viscoelastic"]
+    assert errs["force_rms_N"][1] < errs["force_rms_N"][0] / 3
+    assert mc.history.compare(0, 1)["added"] == ["viscoelastic"]
+    mc.revert(0)
+    assert mc.effects == () and len(mc.history) == 2
+
+
+def test_history_is_immutable_and_round_trips():
+    h = ModelHistory()
+    h1 = h.with_version((), {"E_B_kPa": 10.0}, {"total": -1.0}, {"force_rms_N": 0.3, "displacement_rms_px": 1.0})
+    h2 = h1.with_version(("viscoelastic",), {"E_B_kPa": 12.0, "g1": 0.3}, {"total": -1.1},
+                         {"force_rms_N": 0.02, "displacement_rms_px": 1.0})
+    assert len(h) == 0 and len(h1) == 1 and len(h2) == 2
+    assert h2.current == 1 and h2.reverted(0).current == 0 and len(h2.reverted(0)) == 2
+    c = h2.compare(0, 1)
+    assert c["added"] == ["viscoelastic"] and c["errors"]["force_rms_N"][2] == pytest.approx(0.02 / 0.3)
+    assert ModelHistory.from_json_dict(h2.to_json_dict()) == h2
+    with pytest.raises(IndexError):
+        h2.reverted(5)
+
+
+def test_diagnose_stops_when_cancelled(visco):
+    exp, _ = visco
+    cancel = threading.Event()
+    cancel.set()
+    from app.core.errors import Cancelled
+
+    with pytest.raises(Cancelled):
+        diagnose(exp, candidates=FAST, mesh_settings=ID_MESH, cancel=cancel)

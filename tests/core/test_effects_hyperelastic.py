@@ -1,0 +1,73 @@
+"""The neo-Hookean solver against a closed form, a finite-difference tangent and
+the linear model at small strain."""
+
+import numpy as np
+import pytest
+
+from app.core.fem import coefficients
+from app.core.forward import Boundary, build_model
+from app.core.hyperelastic import HyperelasticModel, neo_hookean_energy, neo_hookean_stress, uniaxial_stress_kPa
+from tests.core.helpers import cube_mesh
+
+
+def test_stress_is_the_derivative_of_the_energy():
+    rng = np.random.default_rng(0)
+    F = np.eye(3) + 0.2 * rng.standard_normal((5, 3, 3))
+    mu, lam = 3.0, 40.0
+    P = neo_hookean_stress(F, mu, lam)
+    h = 1e-6
+    for i in range(3):
+        for j in range(3):
+            dF = np.zeros((3, 3))
+            dF[i, j] = h
+            fd = (neo_hookean_energy(F + dF, mu, lam) - neo_hookean_energy(F - dF, mu, lam)) / (2 * h)
+            assert np.allclose(P[:, i, j], fd, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("nu", [0.3, 0.45])
+def test_uniaxial_compression_matches_the_closed_form(nu):
+    """A cube pressed on its whole top face with frictionless faces deforms
+    homogeneously: F = diag(a, a, s). The FE reaction equals the closed form's
+    nominal stress (lateral stretch a from a scalar root find) times the area."""
+    mesh = cube_mesh(2, size=(10.0, 10.0, 10.0), probe_rect=(0.0, 10.0, 0.0, 10.0))
+    fe = build_model(mesh, Boundary("sliding", "slip"))
+    hm = HyperelasticModel(fe, tol=1e-10)
+    E = 20.0
+    depths = np.array([0.5, 1.0, 2.0, 3.0])
+    sol = hm.solve([E], nu, depths)
+    for d, F in zip(depths, sol.force_N):
+        P33, a = uniaxial_stress_kPa(1.0 - d / 10.0, E, nu)
+        assert F == pytest.approx(-P33 * 100.0 * 1e-3, rel=1e-6)
+    # and it is not the linear answer: neo-Hookean compression stiffens
+    _, g = fe.solve([E], nu)
+    assert sol.force_N[-1] > 1.02 * g * depths[-1]
+    hm.free()
+
+
+def test_tangent_matches_finite_differences_and_small_strain_is_linear():
+    mesh = cube_mesh(2, size=(10.0, 10.0, 8.0), probe_rect=(2.5, 7.5, 2.5, 7.5),
+                     labels=lambda c: (c[:, 2] > 4).astype(np.int32))
+    fe = build_model(mesh)
+    hm = HyperelasticModel(fe)
+    E, nu = [10.0, 25.0], 0.45
+    mu, lam = hm.element_moduli(E, nu)
+    u_lin, g = fe.solve(E, nu)
+    # at u = 0 the tangent is the linear stiffness exactly
+    T0 = hm._upper_matrix(hm.tangent_upper(np.zeros(fe.space.n_dofs), mu, lam))
+    A, _, _, _ = fe.term_blocks(coefficients(E, nu))
+    import scipy.sparse as sp
+
+    assert abs(T0 - sp.triu(A)).max() <= 1e-12 * abs(A).max()
+    # at a deformed state: directional derivative of the internal force
+    u = 0.8 * u_lin
+    v = np.zeros_like(u)
+    v[fe.free] = np.random.default_rng(1).standard_normal(len(fe.free)) * 1e-2
+    eps = 1e-5
+    fd = (hm.internal_force(u + eps * v, mu, lam) - hm.internal_force(u - eps * v, mu, lam)) / (2 * eps)
+    T = hm._upper_matrix(hm.tangent_upper(u, mu, lam))
+    T = T + sp.triu(T, 1).T
+    assert np.linalg.norm(T @ v[fe.free] - fd[fe.free]) < 1e-6 * np.linalg.norm(fd[fe.free])
+    # a tiny indentation gives the linear force per mm
+    sol = hm.solve(E, nu, [1e-4])
+    assert sol.force_N[0] / 1e-4 == pytest.approx(g, rel=1e-3)
+    hm.free()
