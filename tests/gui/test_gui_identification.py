@@ -170,3 +170,26 @@ def test_inputs_are_read_only_during_a_run(window, tiny_experiment, qtbot):
     wait_task_done(qtbot, panel, 60)
     assert window.session.locked_by is None
     assert window.images_panel.spins["col0"].isEnabled() and window.mesh_panel.add_button.isEnabled()
+
+
+def test_paper_workflow_on_the_demo(make_window, qtbot, tmp_path):
+    """The paper's workflow in the window: demo, ROI, mesh, identify, report."""
+    window = make_window()
+    window.open_demo()
+    s = window.session
+    assert s.has_experiment, [b.informativeText() for b in window.error_boxes]
+    s.set_roi((12, 12, 188, 180))
+    assert tuple(s.roi_px) == (12, 12, 188, 180)
+    s.set_identification(replace(s.identification, starts_kPa=(20.0, 40.0), max_evaluations=120, cost="joint"))
+    window.raise_panel("identification")
+    panel = window.identification_panel
+    assert panel.run_button.isEnabled(), panel.settings_note.text()
+    panel.run_button.click()
+    wait_task_done(qtbot, panel, 400)
+    assert not window.error_boxes, [b.informativeText() for b in window.error_boxes]
+    out = s.outcome
+    assert out.parameters["E_B_kPa"] == pytest.approx(18.0, rel=0.05)
+    assert out.parameters["E_A_kPa"] == pytest.approx(63.0, rel=0.05)
+    assert s.mesh is not None and s.mesh.n_nodes > 1000
+    html = window.export("report", tmp_path / "demo-report.html").read_text()
+    assert "Demo" in html and f"{out.parameters['E_A_kPa']:.2f}" in html and "reference" in html
