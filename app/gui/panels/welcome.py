@@ -41,7 +41,7 @@ class WelcomePage(QWidget):
         row = QHBoxLayout()
         row.addStretch(1)
         self.demo_button = self._card(row, "Open the demo experiment",
-                                      "A recorded phantom with a stiff inclusion: look at the frames, mesh it, "
+                                      "A synthetic twin of the paper phantom with a stiff inclusion: look at the frames, mesh it, "
                                       "and identify both moduli.", "Open demo", self.open_demo)
         self.demo_button.setEnabled(demo_available)
         if not demo_available:
