@@ -12,7 +12,6 @@ from PySide6.QtGui import QAction, QKeySequence
 from PySide6.QtWidgets import (QDockWidget, QFileDialog, QLabel, QMainWindow, QMessageBox, QProgressBar, QSizePolicy,
                                QTabWidget, QToolBar, QToolButton, QWidget)
 
-import app as app_pkg
 from app import __version__
 
 from .errors import show_error
@@ -33,7 +32,9 @@ LAYOUT_VERSION = 1
 
 
 def demo_path() -> Path:
-    return Path(app_pkg.__file__).resolve().parent.parent / "resources" / "demo"
+    from app.resources import resource_path  # the source tree's resources/ or the frozen bundle's
+
+    return resource_path("demo")
 
 
 class MainWindow(QMainWindow):

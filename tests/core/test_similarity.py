@@ -24,6 +24,8 @@ def test_nmi_equals_skimage_on_quantized_images(seed, levels, bins):
     a = np.round(rng.random((40, 30)) * levels) / levels
     b = np.round(rng.random((40, 30)) * levels) / max(levels, 1) * 3.7
     assert nmi(a, b, bins) == pytest.approx(sk_nmi(a, b, bins=bins), abs=1e-9)
+    assert NMI(a, bins)(b) == pytest.approx(sk_nmi(a, b, bins=bins), abs=1e-9)
+    assert NMI(b, bins)(a) == pytest.approx(sk_nmi(b, a, bins=bins), abs=1e-9)
 
 
 def test_bin_indices_match_histogramdd_on_edges():
