@@ -222,6 +222,12 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def cmd_selftest(args) -> int:
+    from app.selftest import run_cli
+
+    return run_cli(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="elastoid", description="Identify soft-tissue stiffness from robotic "
                                 "ultrasound indentation. Without a command, opens the desktop application.")
@@ -280,6 +286,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--quiet", action="store_true")
     sp.set_defaults(func=cmd_simulate)
 
+    tp = sub.add_parser("selftest", help="check this installation: one PASS/FAIL line per check",
+                        description="Import everything, mesh and solve a small specimen, render off screen, "
+                        "talk to the simulated rig, build the window offscreen. Exit code 0 when all pass.")
+    tp.add_argument("--with-3d", action="store_true", help="also build the window with its 3-D view (needs a display)")
+    tp.add_argument("--only", help="comma-separated checks: imports, solver, resources, mesh, forward, render, "
+                    "rig, window, window-3d")
+    tp.set_defaults(func=cmd_selftest)
+
     try:
         from app.devices.cli import add_acquire_parser, add_rig_parser
     except ImportError:
@@ -292,6 +306,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--selftest"]:  # the installer's spelling: elastoid --selftest [--with-3d]
+        argv = ["selftest", *argv[1:]]
     args = parser.parse_args(argv)
     if args.command is None:
         from app.gui import main as gui_main
