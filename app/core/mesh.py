@@ -14,6 +14,7 @@ import hashlib
 import json
 import multiprocessing as mp
 import os
+import sys
 import threading
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -200,6 +201,22 @@ def sizing_field(size_mm, probe_rect_mm, settings: MeshSettings, regions: tuple[
     return pts, tets, h
 
 
+def _die_with_parent() -> None:
+    """Linux: the kernel kills this child when its parent dies (a crashed or killed
+    window must not leave a mesher running; pytetwild holds the GIL, so a watchdog
+    thread could not do it)."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            import signal
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            return
+        if os.getppid() == 1:  # the parent died before the request took effect
+            os._exit(1)
+
+
 def _tetwild_job(args, queue):
     """Child process: run fTetWild and send the result back."""
     try:
@@ -207,6 +224,7 @@ def _tetwild_job(args, queue):
 
         import pytetwild
 
+        _die_with_parent()
         # fTetWild writes __tracked_surface.stl into the working directory
         os.chdir(tempfile.mkdtemp(prefix="elastoid-tetwild-"))
         v, f, bg_v, bg_t, bg_h, edge, eps, threads = args

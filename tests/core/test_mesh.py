@@ -1,5 +1,9 @@
+import os
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -77,3 +81,43 @@ def test_meshing_can_be_cancelled():
     with pytest.raises(Cancelled):
         build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=3.0, probe_edge_mm=1.0), cancel=cancel, use_cache=False)
     assert time.perf_counter() - t0 < 5.0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal is Linux-only")
+def test_the_mesher_dies_with_its_parent(tmp_path):
+    """A window killed mid-meshing leaves no fTetWild process behind."""
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).resolve().parents[2])!r})\n"
+        "from tests.core.test_mesh import SIZE, PROBE, REGIONS\n"
+        "from app.core.mesh import MeshSettings, build_mesh\n"
+        "if __name__ == '__main__':\n"
+        "    build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=2.0, probe_edge_mm=0.8), use_cache=False)\n")
+    parent = subprocess.Popen([sys.executable, str(script)], env={**os.environ, "ELASTOID_CACHE_DIR": str(tmp_path)})
+    try:
+        child = None
+        for _ in range(300):
+            kids = Path(f"/proc/{parent.pid}/task/{parent.pid}/children")
+            pids = kids.read_text().split() if kids.exists() else []
+            # the spawn start method also runs a resource tracker; the mesher is the busy one
+            busy = [p for p in pids if "spawn_main" in Path(f"/proc/{p}/cmdline").read_text(errors="ignore")
+                    and "resource_tracker" not in Path(f"/proc/{p}/cmdline").read_text(errors="ignore")]
+            if busy:
+                child = int(busy[0])
+                break
+            time.sleep(0.1)
+        assert child is not None, "the mesher child never started"
+        time.sleep(1.0)  # fTetWild running
+        parent.kill()
+        parent.wait()
+        for _ in range(50):
+            if not Path(f"/proc/{child}").exists() or "Z" in Path(f"/proc/{child}/stat").read_text().split()[2]:
+                break
+            time.sleep(0.1)
+        else:
+            os.kill(child, 9)
+            raise AssertionError("the mesher outlived its parent")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
