@@ -1,7 +1,7 @@
 """The installer's bundle: PyInstaller builds packaging/elastoid.spec into a
 temporary folder, and the frozen executable passes its own self-test.
 
-Slow (about 1.5 min to build and 20 s to test on two cores, see
+Slow (the build takes 1.5 to 2 min on two cores, the tests 40 s; see
 packaging/README.md) but run by default: a module or native library missing
 from the bundle shows only here.
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -44,7 +45,8 @@ def bundle(tmp_path_factory):
     exe = _exe(work / "dist")
     assert exe.is_file() and os.access(exe, os.X_OK)
     print(f"\nbundle built in {took:.0f} s")
-    return exe
+    yield exe
+    shutil.rmtree(work, ignore_errors=True)  # 1.4 GB; pytest would keep the last three runs' copies
 
 
 def _run(exe: Path, args, tmp_path, **env_extra):
