@@ -110,14 +110,15 @@ def cmd_identify(args) -> int:
         from app.core.effects.model import EffectProblem, identify_with_effects
 
         problem = EffectProblem.from_experiment(exp, effects=effects, mesh_settings=settings, roi_px=roi,
-                                                frames=frames, cost=args.cost, nu=args.nu, progress=bar.message)
+                                                frames=frames, cost=args.cost, nu=args.nu, similarity=args.similarity,
+                                                progress=bar.message)
         try:
             result = identify_with_effects(problem, starts, progress=bar)
         finally:
             bar.done()
     else:
         problem = Problem.from_experiment(exp, mesh_settings=settings, roi_px=roi, frames=frames, cost=args.cost,
-                                          nu=args.nu, progress=bar.message)
+                                          nu=args.nu, similarity=args.similarity, progress=bar.message)
         try:
             result = identify(problem, starts, progress=bar)
         finally:
@@ -242,6 +243,9 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
     ip.add_argument("--cost", choices=("joint", "nmi"), default="joint",
                     help="joint: -NMI plus the force misfit (default); nmi: the paper's image-only cost")
+    ip.add_argument("--similarity", choices=("smooth", "hard"), default="smooth",
+                    help="NMI estimator of the cost: smooth (partial-volume bins, continuous; default) or hard "
+                         "(the paper's fixed bins, equal to skimage's)")
     ip.add_argument("--frames", help="frame indices, the first is the source (default: 0 and every later frame)")
     ip.add_argument("--roi", help="col0,row0,col1,row1 in pixels (default: the experiment's)")
     ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")

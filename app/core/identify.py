@@ -24,12 +24,18 @@ from app.core.errors import Cancelled, ElastoidError
 from app.core.forward import Boundary, FEModel, ReducedModel, build_model, region_terms, training_set
 from app.core.images import default_roi, pixel_to_world
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
-from app.core.similarity import NMI
+from app.core.similarity import NMI, SmoothNMI
 from app.core.warp import TPS, FastWarp, WarpGrid
 
 PAPER_STARTS_KPA = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
+RESTARTS = 3  # Nelder-Mead restarts per start (each from where the last stopped)
+RESTART_STEP = 0.05  # their simplex size, in log-modulus (5%)
 BOUNDS_KPA = (0.1, 1e4)
 CONTROL_SPACING_MM = 2.0
+# the NMI estimator of the cost: "smooth" (linear partial-volume binning of the
+# warped source on the source's range: continuous, no bin-edge steps for the
+# simplex to stall on) or "hard" (the paper's, equal to skimage's)
+SIMILARITIES = ("smooth", "hard")
 DISPLACEMENT_NOISE_PX = 0.25  # stated noise model of the image term (speckle-tracking precision)
 _POOLS: ThreadpoolController | None = None
 
@@ -79,9 +85,12 @@ class Problem:
     model, warps and NMI objects for each (source, target) frame pair."""
 
     def __init__(self, exp, mesh: TetMesh, fe: FEModel, rm: ReducedModel, *, nu: float, cost: str,
-                 frames: tuple[int, ...], roi_px, force_weight: float, bins: int):
+                 frames: tuple[int, ...], roi_px, force_weight: float, bins: int, similarity: str = "smooth"):
         if cost not in ("nmi", "joint"):
             raise ElastoidError(f"cost must be 'nmi' or 'joint', got {cost!r}")
+        if similarity not in SIMILARITIES:
+            raise ElastoidError(f"similarity must be one of {', '.join(SIMILARITIES)}, got {similarity!r}")
+        self.similarity = similarity
         self.exp, self.mesh, self.fe, self.rm = exp, mesh, fe, rm
         self.nu, self.cost_kind, self.force_weight, self.bins = nu, cost, force_weight, bins
         self.region_names = mesh.region_names
@@ -114,7 +123,10 @@ class Problem:
                 raise ElastoidError(
                     f"frame {t}: only {100 * pair.mask.mean():.0f}% of the ROI was imaged in the source frame; "
                     "choose a shallower ROI")
-            pair.nmi = NMI(pair.target_roi[pair.mask], bins=bins)
+            if similarity == "smooth":
+                pair.nmi = SmoothNMI(pair.target_roi[pair.mask], bins, (float(img0.min()), float(img0.max())))
+            else:
+                pair.nmi = NMI(pair.target_roi[pair.mask], bins=bins)
             self.pairs.append(pair)
         self.n_evaluations = 0
 
@@ -123,7 +135,7 @@ class Problem:
     def from_experiment(cls, exp, *, mesh: TetMesh | None = None, mesh_settings: MeshSettings | None = None,
                         roi_px=None, frames=None, cost: str = "joint", nu: float = 0.49,
                         boundary: Boundary = Boundary(), force_weight: float = 1.0, bins: int = 32,
-                        progress: Callable[[str], None] | None = None,
+                        similarity: str = "smooth", progress: Callable[[str], None] | None = None,
                         cancel: threading.Event | None = None) -> "Problem":
         """Mesh (cached), assemble, train the reduced model and prepare the frames.
 
@@ -149,7 +161,7 @@ class Problem:
             rm.train(training_set(len(mesh.region_names)))
         say(f"reduced model: {rm.V.shape[1]} basis vectors")
         return cls(exp, mesh, fe, rm, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
-                   force_weight=force_weight, bins=bins)
+                   force_weight=force_weight, bins=bins, similarity=similarity)
 
     def _setup_control_points(self):
         """Grid of control points on the source image plane (2 mm apart, with a margin)."""
@@ -408,9 +420,24 @@ def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | Non
 
         x0 = np.full(len(search), math.log(s))
         simplex = np.vstack([x0] + [x0 + 0.3 * np.eye(len(search))[i] for i in range(len(search))])
-        res = minimize(f, x0, method="Nelder-Mead",
-                       options={"initial_simplex": simplex, "xatol": xatol, "fatol": fatol,
-                                "maxfev": max_evaluations})
+        opts = {"xatol": xatol, "fatol": fatol, "maxfev": max_evaluations}
+        res = minimize(f, x0, method="Nelder-Mead", options={**opts, "initial_simplex": simplex})
+        # a simplex can collapse in the long valley the joint cost has (the force fixes
+        # one combination of the moduli, the images another) and stop short of the
+        # minimum: restart from where it stopped with a fresh, smaller simplex until a
+        # restart no longer improves (standard practice with Nelder-Mead)
+        for _ in range(RESTARTS):
+            if count[0] >= max_evaluations:
+                break
+            x1 = res.x
+            simplex = np.vstack([x1] + [x1 + RESTART_STEP * np.eye(len(search))[i] for i in range(len(search))])
+            r2 = minimize(f, x1, method="Nelder-Mead",
+                          options={**opts, "initial_simplex": simplex, "maxfev": max_evaluations - count[0]})
+            improved = r2.fun < res.fun - fatol
+            if r2.fun < res.fun:
+                res = r2
+            if not improved:
+                break
         params, _ = params_of(res.x)
         cost = problem.evaluate(params)
         total_evals += count[0]

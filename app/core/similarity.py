@@ -90,6 +90,44 @@ class NMI:
         return (self._hf + hm) / self._entropy(joint)
 
 
+class SmoothNMI:
+    """Studholme's NMI with the moving image binned by linear (partial-volume)
+    weights over a fixed intensity range.
+
+    Hard bins make the identification cost a staircase: a parameter change moves
+    pixel values across bin edges one at a time, and a simplex stalls on the
+    steps (local optima a few percent apart in the moduli ratio). Here each moving
+    value splits its count between the two nearest bin centres in proportion to
+    its distance, and the range is fixed (the source frame's, not the warped
+    image's own min and max), so the value is continuous and piecewise smooth in
+    the moving image. The fixed image keeps hard bins on its own range.
+    It is not skimage's estimator (that is :class:`NMI`); both lie in [1, 2]."""
+
+    def __init__(self, fixed: np.ndarray, bins: int, moving_range: tuple[float, float]):
+        self.bins = bins
+        f = bin_indices(fixed, bins)
+        self.n = f.size
+        self._rows = f * bins
+        lo, hi = (float(v) for v in moving_range)
+        if not hi > lo:
+            lo, hi = lo - 0.5, hi + 0.5
+        self.lo, self.scale = lo, (bins - 1) / (hi - lo)
+        self._hf = _entropy(np.bincount(f, minlength=bins).astype(float))
+
+    def __call__(self, moving: np.ndarray) -> float:
+        bins = self.bins
+        t = np.subtract(np.asarray(moving, float).ravel(), self.lo)
+        t *= self.scale
+        np.clip(t, 0.0, bins - 1 - 1e-9, out=t)
+        k = t.astype(np.int64)
+        w1 = t - k
+        k += self._rows
+        joint = np.bincount(k, weights=1.0 - w1, minlength=bins * bins)
+        joint[1:] += np.bincount(k, weights=w1, minlength=bins * bins)[:-1]
+        hm = _entropy(joint.reshape(bins, bins).sum(axis=0))
+        return (self._hf + hm) / _entropy(joint)
+
+
 def local_similarity(a: np.ndarray, b: np.ndarray, window: int = 15) -> np.ndarray:
     """Windowed normalized cross-correlation map in [-1, 1] (for residual maps)."""
     from scipy.ndimage import uniform_filter

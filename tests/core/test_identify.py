@@ -12,11 +12,10 @@ from app.core.identify import Problem, identify
 from tests.core import synthetic
 
 CASES = [("medium-sphere", 1), ("medium-sphere", 2), ("medium-ellipsoid", 3)]
-# Acceptance asks for 5%. Most runs land within 2.5%, but identical code has given up
-# to 7.5% on another run (the image similarity is rippled and the fits are not yet
-# reproducible run to run): the tests hold the 10% the method reliably meets until that
-# is fixed (issue 2 stays open on this point).
-TOL = 0.10
+# Each run meshes anew and fTetWild's meshes differ from run to run (it is not
+# deterministic even on one thread): across meshes the fits moved by up to about 2%
+# (docs/method.md), inside the 5% asked for.
+TOL = 0.05
 
 
 @pytest.fixture(scope="module", params=CASES, ids=[f"{g}-seed{s}" for g, s in CASES])
@@ -36,6 +35,10 @@ def test_joint_cost_recovers_every_modulus_within_5_percent(case):
     for region, truth in spec.moduli_kPa.items():
         got = result.parameters[f"E_{region}_kPa"]
         assert abs(got / truth - 1) < TOL, (region, got, truth)
+    # the six starts reach the same optimum (a rippled cost or a stalled simplex
+    # used to leave them several percent apart)
+    ratios = [st["parameters"]["E_A_kPa"] / st["parameters"]["E_B_kPa"] for st in result.starts]
+    assert max(ratios) / min(ratios) - 1 < 0.01, ratios
     ident = result.identifiability
     assert all(flag == "ok" for flag in ident.flags.values()), ident.lines()
 
@@ -79,3 +82,22 @@ def test_progress_reports_every_evaluation_and_cancel_stops(case):
     assert [r.evaluation for r in seen] == list(range(1, 16))
     assert set(seen[0].cost) == {"total", "nmi", "force_rms_N"}
     assert set(seen[0].parameters) == set(joint.parameter_names)
+
+
+def test_the_papers_hard_binned_cost_equals_skimage(case):
+    """similarity="hard" is the paper's estimator: the cost's NMI is skimage's on
+    the warped source and the frame (same bins), averaged over the frame pairs."""
+    from skimage.metrics import normalized_mutual_information as sk_nmi
+
+    _, joint, _ = case
+    hard = Problem(joint.exp, joint.mesh, joint.fe, joint.rm, nu=0.49, cost="joint", frames=joint.frames,
+                   roi_px=None, force_weight=1.0, bins=joint.bins, similarity="hard")
+    p = {"E_B_kPa": 14.0, "E_A_kPa": 40.0}
+    expected = []
+    for pair in hard.pairs:
+        w, target, _, mask = hard.warped_source(p, pair.target)
+        expected.append(sk_nmi(target[mask], w[mask], bins=hard.bins))
+    assert hard.evaluate(p)["nmi"] == pytest.approx(np.mean(expected), abs=1e-9)
+    # the smooth estimator of the default cost is close to it and in the same range
+    assert 1.0 < joint.evaluate(p)["nmi"] < 2.0
+    assert joint.evaluate(p)["nmi"] == pytest.approx(np.mean(expected), rel=0.05)

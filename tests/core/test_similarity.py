@@ -50,3 +50,30 @@ def test_local_similarity_finds_the_disagreeing_patch():
     b[20:40, 50:70] = rng.random((20, 20))
     m = local_similarity(a, b, 9)
     assert m[30, 60] < 0.3 and m[60, 20] > 0.99
+
+
+def test_smooth_nmi_has_no_bin_edge_steps():
+    """The identification's estimator is continuous in the moving image: shifting
+    the moving image changes it smoothly, where hard bins step (the steps a
+    simplex stalls on); both peak at the aligned image."""
+    from scipy.ndimage import gaussian_filter, shift
+
+    from app.core.similarity import SmoothNMI
+
+    rng = np.random.default_rng(3)
+    src = gaussian_filter(rng.random((80, 90)), 1.5)
+    fixed = src + 0.02 * rng.standard_normal(src.shape)  # the frame: same tissue, new speckle noise
+    s = np.linspace(-0.6, 0.6, 121)
+    smooth = SmoothNMI(fixed, 32, (src.min(), src.max()))
+    hard = NMI(fixed, 32)
+    vs = np.array([smooth(shift(src, (0.0, x), order=3)) for x in s])
+    vh = np.array([hard(shift(src, (0.0, x), order=3)) for x in s])
+    assert np.all((vs > 1) & (vs <= 2))
+    assert abs(s[np.argmax(vs)]) < 0.02 and abs(s[np.argmax(vh)]) < 0.1
+    # roughness: largest second difference relative to the curve's range
+    rough_s = np.abs(np.diff(vs, 2)).max() / (vs.max() - vs.min())
+    rough_h = np.abs(np.diff(vh, 2)).max() / (vh.max() - vh.min())
+    assert rough_h > 2 * rough_s, (rough_s, rough_h)
+    # no local optimum: strictly rising to the peak and falling after it
+    i = int(np.argmax(vs))
+    assert np.all(np.diff(vs[: i + 1]) > 0) and np.all(np.diff(vs[i:]) < 0)

@@ -55,7 +55,8 @@ class EffectProblem(Problem):
     """A :class:`Problem` with effects. Build with :meth:`from_experiment`."""
 
     def __init__(self, exp, mesh, fe, rm, *, effects=(), nu: float = 0.49, cost: str = "joint", frames,
-                 roi_px=None, force_weight: float = 1.0, bins: int = 32, inclusion: dict | None = None):
+                 roi_px=None, force_weight: float = 1.0, bins: int = 32, inclusion: dict | None = None,
+                 similarity: str = "smooth"):
         self.effects = check(effects)
         self.n_regions = len(mesh.region_names)
         self._points: dict[str, tuple] = {}
@@ -63,7 +64,7 @@ class EffectProblem(Problem):
         self._hyper_model = None
         self._ctrl_P = None
         super().__init__(exp, mesh, fe, rm, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
-                         force_weight=force_weight, bins=bins)
+                         force_weight=force_weight, bins=bins, similarity=similarity)
         self.moduli_names = tuple(self.parameter_names)
         self.extra_parameters: tuple[Parameter, ...] = parameters_of(self.effects)
         self.parameter_names = self.moduli_names + tuple(p.name for p in self.extra_parameters)
@@ -74,7 +75,8 @@ class EffectProblem(Problem):
     @classmethod
     def from_experiment(cls, exp, *, effects=(), mesh: TetMesh | None = None,
                         mesh_settings: MeshSettings | None = None, roi_px=None, frames=None, cost: str = "joint",
-                        nu: float = 0.49, force_weight: float = 1.0, bins: int = 32, base: Problem | None = None,
+                        nu: float = 0.49, force_weight: float = 1.0, bins: int = 32, similarity: str = "smooth",
+                        base: Problem | None = None,
                         inclusion: dict | None = None, progress: Callable[[str], None] | None = None,
                         cancel: threading.Event | None = None, **_ignored) -> "EffectProblem":
         """Mesh, assemble and train what the effects need. ``base``: a problem on the
@@ -118,7 +120,7 @@ class EffectProblem(Problem):
                     rm.train(training_set(n))
             say(f"reduced model: {rm.V.shape[1]} basis vectors")
         return cls(exp, mesh, fe, rm, effects=effects, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
-                   force_weight=force_weight, bins=bins, inclusion=inclusion)
+                   force_weight=force_weight, bins=bins, inclusion=inclusion, similarity=similarity)
 
     # --- parameters -----------------------------------------------------------
     def defaults(self) -> dict:
