@@ -32,7 +32,7 @@ import scipy.sparse as sp
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import QUAD_BARY, QUAD_W, coefficients, lame, shape_gradients
 from app.core.forward import MN_TO_N, FEModel
-from app.core.solver import Factorized
+from app.core.solver import SymmetricFactor
 
 
 # ---------------------------------------------------------------------------
@@ -124,83 +124,6 @@ class HyperelasticSolution:
 
 class _StepFailed(Exception):
     """A load step did not converge (or its predictor inverted an element)."""
-
-
-class SymmetricFactor:
-    """Cholesky factor of an SPD matrix with a fixed sparsity pattern, refactorized
-    in place for new values (the ordering and symbolic analysis are done once).
-
-    MKL PARDISO through pypardiso's library handle, in single precision by
-    default: it serves as the fixed iteration matrix of a modified Newton method,
-    where half the memory and time matter and its 1e-6 accuracy does not. Without
-    MKL it falls back to :class:`app.core.solver.Factorized` (double precision).
-    """
-
-    def __init__(self, upper: sp.csr_matrix, single: bool = True, definite: bool = False):
-        from app.core import solver
-
-        self.n = upper.shape[0]
-        self._fallback = None
-        if not solver.HAVE_PARDISO:
-            self._fallback = Factorized(upper + sp.triu(upper, 1).T)
-            return
-        import ctypes
-
-        import pypardiso
-
-        self._ct = ctypes
-        self.mtype = 2 if definite else -2  # -2: symmetric indefinite (Bunch-Kaufman pivoting)
-        self._s = pypardiso.PyPardisoSolver(mtype=self.mtype)
-        self._s._mkl_pardiso.argtypes = None  # we pass float32 arrays in single precision
-        ip = self._s.iparm
-        ip[:] = 0
-        ip[0] = 1  # iparm given
-        ip[1] = 2  # METIS nested dissection
-        ip[9] = 8  # pivot perturbation 1e-8
-        ip[34] = 0  # one-based indices
-        ip[27] = 1 if single else 0
-        self.dtype = np.float32 if single else np.float64
-        self._ia = (upper.indptr + 1).astype(np.int32)
-        self._ja = (upper.indices + 1).astype(np.int32)
-        self._data = upper.data.astype(self.dtype)
-        self._call(11, np.zeros(self.n, self.dtype))
-        self._call(22, np.zeros(self.n, self.dtype))
-
-    def _call(self, phase: int, b: np.ndarray) -> np.ndarray:
-        ct = self._ct
-        x = np.zeros_like(b)
-        err = ct.c_int32(0)
-        i32 = ct.POINTER(ct.c_int32)
-        s = self._s
-        nrhs = 1 if b.ndim == 1 else b.shape[1]
-        s._mkl_pardiso(s.pt.ctypes.data_as(ct.POINTER(s._pt_type[0])), ct.byref(ct.c_int32(1)),
-                       ct.byref(ct.c_int32(1)), ct.byref(ct.c_int32(self.mtype)), ct.byref(ct.c_int32(phase)),
-                       ct.byref(ct.c_int32(self.n)), self._data.ctypes.data_as(ct.c_void_p),
-                       self._ia.ctypes.data_as(i32), self._ja.ctypes.data_as(i32), s.perm.ctypes.data_as(i32),
-                       ct.byref(ct.c_int32(nrhs)), s.iparm.ctypes.data_as(i32), ct.byref(ct.c_int32(0)),
-                       b.ctypes.data_as(ct.c_void_p), x.ctypes.data_as(ct.c_void_p), ct.byref(err))
-        if err.value != 0:
-            raise ElastoidError(f"PARDISO failed (error {err.value})")
-        return x
-
-    def refactor(self, upper_data: np.ndarray) -> None:
-        """New values on the same pattern: numeric factorization only."""
-        if self._fallback is not None:
-            raise NotImplementedError
-        self._data = np.ascontiguousarray(upper_data, self.dtype)
-        self._call(22, np.zeros(self.n, self.dtype))
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        if self._fallback is not None:
-            return self._fallback.solve(b)
-        return self._call(33, np.ascontiguousarray(b, self.dtype)).astype(np.float64)
-
-    def free(self) -> None:
-        if self._fallback is not None:
-            self._fallback.free()
-        elif self._s is not None:
-            self._call(-1, np.zeros(self.n, self.dtype))
-            self._s = None
 
 
 @dataclass
