@@ -373,6 +373,40 @@ class Result:
                 "identifiability": self.identifiability.to_dict() if self.identifiability else None}
 
 
+def nelder_mead(f, x0, step: float, *, xatol: float, fatol: float, max_evaluations: int, count=None):
+    """Nelder-Mead from ``x0`` with an initial simplex of ``step`` along each axis,
+    restarted from where it stopped with a fresh ``RESTART_STEP`` simplex until a
+    restart no longer improves (at most ``RESTARTS``).
+
+    A simplex can collapse in a long valley (the joint cost has one: the force
+    fixes one combination of the moduli, the images another) and stop short of
+    the minimum; restarting is the standard remedy. ``count`` (a one-item list
+    ``f`` increments) bounds the evaluations of all rounds together."""
+    x0 = np.asarray(x0, float)
+    n = len(x0)
+    count = count if count is not None else [0]
+    opts = {"xatol": xatol, "fatol": fatol}
+
+    def simplex(x, h):
+        return np.vstack([x] + [x + h * np.eye(n)[i] for i in range(n)])
+
+    start = count[0]
+    res = minimize(f, x0, method="Nelder-Mead",
+                   options={**opts, "initial_simplex": simplex(x0, step), "maxfev": max_evaluations})
+    for _ in range(RESTARTS):
+        left = max_evaluations - (count[0] - start)
+        if left <= n + 1:
+            break
+        r2 = minimize(f, res.x, method="Nelder-Mead",
+                      options={**opts, "initial_simplex": simplex(res.x, RESTART_STEP), "maxfev": left})
+        improved = r2.fun < res.fun - fatol
+        if r2.fun < res.fun:
+            res = r2
+        if not improved:
+            break
+    return res
+
+
 def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | None = None,
              progress: Callable[[EvalReport], None] | None = None, cancel: threading.Event | None = None,
              max_evaluations: int = 200, xatol: float = 2e-3, fatol: float = 1e-6) -> Result:
@@ -419,25 +453,7 @@ def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | Non
             return cost["total"] + float(np.sum((x - xc) ** 2))
 
         x0 = np.full(len(search), math.log(s))
-        simplex = np.vstack([x0] + [x0 + 0.3 * np.eye(len(search))[i] for i in range(len(search))])
-        opts = {"xatol": xatol, "fatol": fatol, "maxfev": max_evaluations}
-        res = minimize(f, x0, method="Nelder-Mead", options={**opts, "initial_simplex": simplex})
-        # a simplex can collapse in the long valley the joint cost has (the force fixes
-        # one combination of the moduli, the images another) and stop short of the
-        # minimum: restart from where it stopped with a fresh, smaller simplex until a
-        # restart no longer improves (standard practice with Nelder-Mead)
-        for _ in range(RESTARTS):
-            if count[0] >= max_evaluations:
-                break
-            x1 = res.x
-            simplex = np.vstack([x1] + [x1 + RESTART_STEP * np.eye(len(search))[i] for i in range(len(search))])
-            r2 = minimize(f, x1, method="Nelder-Mead",
-                          options={**opts, "initial_simplex": simplex, "maxfev": max_evaluations - count[0]})
-            improved = r2.fun < res.fun - fatol
-            if r2.fun < res.fun:
-                res = r2
-            if not improved:
-                break
+        res = nelder_mead(f, x0, 0.3, xatol=xatol, fatol=fatol, max_evaluations=max_evaluations, count=count)
         params, _ = params_of(res.x)
         cost = problem.evaluate(params)
         total_evals += count[0]

@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-from scipy.optimize import minimize
 
 from app.core.effects import EFFECT_IDS, INFO, Parameter, check, parameters_of
 from app.core.effects.boundary import boundary_for
@@ -37,7 +36,7 @@ from app.core.effects.viscoelastic import prony_force
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import interpolation_matrix
 from app.core.forward import ReducedModel, build_model, region_terms, training_set
-from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, single_threaded_blas
+from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, nelder_mead, single_threaded_blas
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 
 
@@ -395,9 +394,7 @@ def fit(problem: EffectProblem, start: dict, *, objective: Callable[[dict], floa
         p = params0
         val = f(x0)
     else:
-        simplex = np.vstack([x0] + [x0 + step * np.eye(len(names))[i] for i in range(len(names))])
-        res = minimize(f, x0, method="Nelder-Mead",
-                       options={"initial_simplex": simplex, "xatol": xatol, "fatol": fatol, "maxfev": max_evaluations})
+        res = nelder_mead(f, x0, step, xatol=xatol, fatol=fatol, max_evaluations=max_evaluations, count=count)
         p = params_of(res.x)
         val = float(res.fun)
     cost = problem.evaluate(p)
