@@ -21,6 +21,7 @@ from .panels.identification import IdentificationPanel
 from .panels.images import ImagesPanel
 from .panels.log import LogPanel
 from .panels.mesh import MeshPanel
+from .panels.modelcheck import ModelCheckPanel
 from .panels.rig import RigPanel
 from .panels.welcome import WelcomePage
 from .workers import Task
@@ -28,7 +29,7 @@ from .workers import Task
 log = logging.getLogger("elastoid.gui")
 
 MAX_RECENT = 8
-LAYOUT_VERSION = 1
+LAYOUT_VERSION = 2  # 2: the Model check dock
 
 
 def demo_path() -> Path:
@@ -53,11 +54,13 @@ class MainWindow(QMainWindow):
         self.images_panel = ImagesPanel(self.session)
         self.mesh_panel = MeshPanel(self.session, enable_3d=enable_3d)
         self.identification_panel = IdentificationPanel(self.session, backend=identify_backend)
+        self.modelcheck_panel = ModelCheckPanel(self.session)
         self.rig_panel = RigPanel(self.rig, self.session)
         self.panels = {"images": self.images_panel, "mesh": self.mesh_panel,
-                       "identification": self.identification_panel, "rig": self.rig_panel, "log": self.log_panel}
-        titles = {"images": "Images", "mesh": "Specimen and mesh", "identification": "Identification", "rig": "Rig",
-                  "log": "Log"}
+                       "identification": self.identification_panel, "modelcheck": self.modelcheck_panel,
+                       "rig": self.rig_panel, "log": self.log_panel}
+        titles = {"images": "Images", "mesh": "Specimen and mesh", "identification": "Identification",
+                  "modelcheck": "Model check", "rig": "Rig", "log": "Log"}
 
         self.docks: dict[str, QDockWidget] = {}
         for key, panel in self.panels.items():
@@ -78,6 +81,7 @@ class MainWindow(QMainWindow):
 
         self.welcome = WelcomePage(demo_path().joinpath("experiment.toml").is_file())
         self.welcome.open_demo.connect(self.open_demo)
+        self.welcome.run_demo.connect(self.run_demo)
         self.welcome.start_rig.connect(self.start_simulated_rig)
         self.welcome.open_folder.connect(self.open_experiment_dialog)
         self.welcome.open_recent.connect(self._open_recent)
@@ -99,7 +103,7 @@ class MainWindow(QMainWindow):
 
     # ---- layout -------------------------------------------------------------------------------
     def _default_layout(self) -> None:
-        main = ("images", "mesh", "identification", "rig")
+        main = ("images", "mesh", "identification", "modelcheck", "rig")
         for key in main:
             self.addDockWidget(Qt.LeftDockWidgetArea, self.docks[key])
             self.docks[key].show()
@@ -205,6 +209,9 @@ class MainWindow(QMainWindow):
                                      "Open an experiment folder (experiment.toml, force.csv, images/)")
         self.act_demo = self._action("Open the &demo experiment", self.open_demo)
         self.act_demo.setEnabled(demo_path().joinpath("experiment.toml").is_file())
+        self.act_run_demo = self._action("R&un the demo (open and identify)", self.run_demo, None,
+                                         "Open the demo experiment and identify its moduli in one go")
+        self.act_run_demo.setEnabled(self.act_demo.isEnabled())
         self.act_open_session = self._action("Open &session...", self.open_session_dialog, "Ctrl+Shift+O")
         self.act_save = self._action("&Save session", self.save_session, QKeySequence.Save,
                                      "Save the ROI, mesh settings and results as a session file")
@@ -232,7 +239,7 @@ class MainWindow(QMainWindow):
     def _build_menus(self) -> None:
         mb = self.menuBar()
         f = mb.addMenu("&File")
-        for a in (self.act_open, self.act_demo):
+        for a in (self.act_open, self.act_demo, self.act_run_demo):
             f.addAction(a)
         self.recent_menu = f.addMenu("Open &recent")
         self.recent_menu.aboutToShow.connect(self._fill_recent)
@@ -268,7 +275,8 @@ class MainWindow(QMainWindow):
         tb.addAction(self.act_open_session)
         tb.addAction(self.act_save)
         tb.addSeparator()
-        for key, text in (("images", "Images"), ("mesh", "Mesh"), ("identification", "Identify"), ("rig", "Rig")):
+        for key, text in (("images", "Images"), ("mesh", "Mesh"), ("identification", "Identify"),
+                          ("modelcheck", "Model check"), ("rig", "Rig")):
             tb.addAction(self._action(text, lambda _=False, key=key: self.raise_panel(key)))
         spacer = QWidget()
         spacer.setSizePolicy(QSizePolicy.Expanding, QSizePolicy.Preferred)
@@ -356,6 +364,17 @@ class MainWindow(QMainWindow):
 
     def open_demo(self) -> None:
         self.open_experiment(demo_path())
+
+    def run_demo(self) -> None:
+        """One click to a result: open the demo and run the identification with the current
+        settings (by default the paper's: six starts, NMI and force)."""
+        if self.identification_panel.running:
+            self.raise_panel("identification")
+            return
+        if not self.open_experiment(demo_path()):
+            return
+        self.raise_panel("identification")
+        self.identification_panel.run()
 
     def open_session(self, path) -> bool:
         try:

@@ -138,6 +138,20 @@ def tiny_experiment(tmp_path_factory, _qt_env) -> Path:
     return out
 
 
+def visco_spec():
+    """The tiny phantom with a hidden viscoelastic effect, a hold and an unloading (the model check's data).
+    Same geometry and truth mesh as :func:`tiny_spec`, so both share the cached meshes."""
+    return tiny_spec().with_(name="Tiny phantom, viscoelastic (test)", effects=("viscoelastic",), g1=0.35,
+                             tau1_s=2.0, hold_s=4.0, unload=True)
+
+
+@pytest.fixture(scope="session")
+def visco_experiment(tmp_path_factory, _qt_env) -> Path:
+    from app.core.simulate import simulate_experiment
+
+    return simulate_experiment(tmp_path_factory.mktemp("visco") / "visco", visco_spec())
+
+
 @pytest.fixture(scope="session")
 def noise_experiment(tmp_path_factory, _qt_env) -> Path:
     """A quick experiment with random-noise frames (no physics): for views and sessions."""

@@ -165,3 +165,32 @@ def test_mesh_and_identification_choices_are_remembered(make_window, noise_exper
     assert again.session.identification.cost == "joint"
     assert [p.name for p in again.session.identification.parameters] == ["E_B_kPa", "E_A_kPa"]
     assert again.identification_panel.starts_edit.text() == "15, 45"
+
+
+def test_run_the_demo_with_one_click(window, qtbot):
+    """The welcome page offers the demo, the simulated rig and a folder; one click on Run the demo
+    opens the demo and identifies it (default settings: the paper's six starts) to within 5% of its truth."""
+    import tomllib
+
+    from conftest import wait_task_done
+    from PySide6.QtCore import Qt
+
+    from app.gui.mainwindow import demo_path
+
+    w = window.welcome
+    assert w.isVisible()
+    for b in (w.run_demo_button, w.demo_button, w.rig_button, w.folder_button):
+        assert b.isVisible() and b.isEnabled()
+    qtbot.mouseClick(w.run_demo_button, Qt.LeftButton)  # the one click
+    panel = window.identification_panel
+    assert window.session.has_experiment and not w.isVisible() and panel.running
+    assert window.docks["identification"].isVisible()
+    wait_task_done(qtbot, panel, 400)
+    assert not window.error_boxes, [b.informativeText() for b in window.error_boxes]
+    out = window.session.outcome
+    assert out is not None, panel.state.text()
+    truth = tomllib.loads((demo_path() / "truth.toml").read_text(encoding="utf-8"))["moduli_kPa"]
+    for region, modulus in truth.items():
+        assert out.parameters[f"E_{region}_kPa"] == pytest.approx(modulus, rel=0.05), (region, out.parameters)
+    assert len(out.starts) == 6  # the paper's starts, untouched
+    assert "Identifiability" in panel.report.toPlainText()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import QDoubleSpinBox, QFrame, QHBoxLayout, QLabel, QSpinBox, QWidget
+from PySide6.QtWidgets import QDoubleSpinBox, QFrame, QHBoxLayout, QLabel, QScrollArea, QSpinBox, QWidget
 
 
 def spin(lo: float, hi: float, value: float, *, decimals: int = 2, step: float = 1.0, suffix: str = "",
@@ -61,6 +61,21 @@ def row(*widgets, stretch: bool = True) -> QWidget:
     if stretch:
         lay.addStretch(1)
     return w
+
+
+def scrolled(side: QWidget) -> QScrollArea:
+    """A panel's side column in a vertical scroll area, so the window fits small screens
+    (its width stays the column's own)."""
+    sc = QScrollArea()
+    sc.setWidget(side)
+    sc.setWidgetResizable(True)
+    sc.setHorizontalScrollBarPolicy(Qt.ScrollBarAlwaysOff)
+    sc.setFrameShape(QFrame.NoFrame)
+    extra = sc.verticalScrollBar().sizeHint().width()
+    sc.setMinimumWidth(side.minimumWidth() + extra)
+    if side.maximumWidth() < 16777215:
+        sc.setMaximumWidth(side.maximumWidth() + extra)
+    return sc
 
 
 def normalized(img: np.ndarray, lo_pct: float = 1.0, hi_pct: float = 99.0) -> np.ndarray:

@@ -25,7 +25,7 @@ from ..models.session import COSTS, IdentificationSettings, SessionModel
 from ..style import mono_font, start_color, style_plot
 from ..workers import Task
 from .base import Panel
-from .common import hint, ispin, red_green, spin
+from .common import hint, ispin, red_green, scrolled, spin
 
 log = logging.getLogger("elastoid.gui")
 
@@ -81,6 +81,7 @@ class IdentificationPanel(Panel):
         session.specimen_changed.connect(self._on_experiment)
         session.outcome_changed.connect(self._on_outcome)
         session.frames_changed.connect(lambda *_: self._check_settings())
+        session.lock_changed.connect(lambda *_: self._check_settings())
         self._on_experiment()
 
     # ---- layout -------------------------------------------------------------------------
@@ -173,7 +174,7 @@ class IdentificationPanel(Panel):
         sl.addWidget(starts_box, 1)
         side.setMinimumWidth(590)
         side.setMaximumWidth(680)
-        split.addWidget(side)
+        split.addWidget(scrolled(side))
 
         right = QSplitter(Qt.Vertical)
         self.plots = pg.GraphicsLayoutWidget()
@@ -423,6 +424,8 @@ class IdentificationPanel(Panel):
         out = []
         if not s.has_experiment:
             return ["open an experiment first"]
+        if s.locked_by and not self.running:
+            out.append(f"wait: {s.locked_by}")
         ident = s.identification
         try:
             parse_starts(self.starts_edit.text())

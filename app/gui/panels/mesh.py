@@ -22,7 +22,7 @@ from ..style import mono_font, region_color
 from ..view3d import can_use_3d
 from ..workers import Task
 from .base import Panel
-from .common import hint, spin
+from .common import hint, scrolled, spin
 
 log = logging.getLogger("elastoid.gui")
 
@@ -156,7 +156,7 @@ class MeshPanel(Panel):
         sl.addWidget(mesh)
         side.setMinimumWidth(380)
         side.setMaximumWidth(460)
-        split.addWidget(side)
+        split.addWidget(scrolled(side))
 
         view = QWidget()
         vl = QVBoxLayout(view)

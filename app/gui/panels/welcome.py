@@ -12,6 +12,7 @@ from app import __version__
 
 class WelcomePage(QWidget):
     open_demo = Signal()
+    run_demo = Signal()  # open the demo and identify it: one click to a result
     start_rig = Signal()
     open_folder = Signal()
     open_recent = Signal(str, str)  # (kind "experiment" | "session", path)
@@ -40,12 +41,20 @@ class WelcomePage(QWidget):
         outer.addSpacing(24)
         row = QHBoxLayout()
         row.addStretch(1)
-        self.demo_button = self._card(row, "Open the demo experiment",
-                                      "A synthetic twin of the paper phantom with a stiff inclusion: look at the frames, mesh it, "
-                                      "and identify both moduli.", "Open demo", self.open_demo)
-        self.demo_button.setEnabled(demo_available)
-        if not demo_available:
-            self.demo_button.setToolTip("The demo experiment is not installed (resources/demo)")
+        self.run_demo_button = self._card(row, "Run the demo",
+                                          "A synthetic twin of the paper phantom with a stiff inclusion. One click "
+                                          "opens it and identifies both moduli; or open it to go step by step.",
+                                          "Run the demo", self.run_demo)
+        self.run_demo_button.setToolTip("Open the demo experiment and run the identification (the paper's six "
+                                        "starts); the result appears in the Identification panel")
+        self.demo_button = QPushButton("Open demo only")
+        self.demo_button.setToolTip("Open the demo experiment without running anything")
+        self.demo_button.clicked.connect(self.open_demo.emit)
+        self.run_demo_button.parentWidget().layout().addWidget(self.demo_button)
+        for b in (self.run_demo_button, self.demo_button):
+            b.setEnabled(demo_available)
+            if not demo_available:
+                b.setToolTip("The demo experiment is not installed (resources/demo)")
         self.rig_button = self._card(row, "Start the simulated rig",
                                      "A simulated stage and force sensor: jog, find contact and record an "
                                      "indentation without hardware.", "Start simulated rig", self.start_rig)

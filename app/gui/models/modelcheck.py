@@ -1,0 +1,345 @@
+"""The model check of the session's experiment, free of Qt.
+
+:class:`ModelCheckModel` owns one :class:`app.core.diagnose.ModelCheck` (made for
+the experiment as edited: ROI, specimen, mesh sizes, Poisson's ratio) and builds
+the work functions a worker thread runs: identify with a set of effects,
+diagnose, add an effect, revert to a version. Each work function returns a
+:class:`Snapshot` (the history, the comparison of the current version, the last
+diagnosis) that the panel shows once it is back on the GUI thread; the panel
+never reads the core object while a worker changes it.
+
+The formatting helpers below turn the core's results into the text, arrays and
+rows the panel draws (also Qt-free, so they are tested without a window).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from app.core.errors import ElastoidError
+
+Work = Callable[[Callable[[str], None], threading.Event], Any]
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What the panel shows after a step: read-only views of the check's state."""
+
+    history: Any  # app.core.diagnose.ModelHistory
+    comparison: Any = None  # app.core.compare.Comparison of the current version
+    diagnosis: Any = None  # app.core.diagnose.Diagnosis (the last one)
+    diagnosed_version: int | None = None  # the version the diagnosis was made for
+    action: str = ""  # "identify" | "diagnose" | "add" | "revert"
+    message: str = ""  # one line for the status bar and the log
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What a model check depends on; a new one is needed when any of it changes."""
+
+    experiment_id: int
+    specimen: Any
+    roi_px: tuple | None
+    mesh_settings: Any
+    nu: float
+
+
+class ModelCheckModel:
+    """One model check at a time. ``check`` is None until the first identify."""
+
+    def __init__(self, factory: Callable[..., Any] | None = None):
+        self._factory = factory  # for tests: builds the core ModelCheck
+        self.check = None
+        self.inputs: Inputs | None = None
+        self.snapshot: Snapshot | None = None
+
+    # ---- inputs -----------------------------------------------------------------------
+    @staticmethod
+    def inputs_of(session) -> Inputs | None:
+        if not session.has_experiment:
+            return None
+        return Inputs(id(session.experiment), session.specimen, tuple(session.roi_px) if session.roi_px else None,
+                      session.effective_mesh_settings(), float(session.identification.nu))
+
+    def reset(self) -> None:
+        self.check, self.inputs, self.snapshot = None, None, None
+
+    def stale(self, session) -> bool:
+        """True when the inputs changed since this check was made (its versions are for other inputs)."""
+        return self.check is not None and self.inputs != self.inputs_of(session)
+
+    @property
+    def history(self):
+        return self.snapshot.history if self.snapshot else None
+
+    @property
+    def n_versions(self) -> int:
+        h = self.history
+        return len(h) if h is not None else 0
+
+    @property
+    def current_effects(self) -> tuple:
+        h = self.history
+        v = h.current_version if h is not None else None
+        return v.effects if v is not None else ()
+
+    @property
+    def current_inclusion(self):
+        h = self.history
+        v = h.current_version if h is not None else None
+        return v.inclusion if v is not None else None
+
+    def diagnosis_is_current(self) -> bool:
+        """The last diagnosis was made for the version that is current now (so its candidates can be added)."""
+        s = self.snapshot
+        return (s is not None and s.diagnosis is not None and s.history is not None
+                and s.diagnosed_version == s.history.current)
+
+    # ---- work for a worker thread ------------------------------------------------------
+    def _make(self, session):
+        from app.core.diagnose import ModelCheck
+
+        make = self._factory or ModelCheck
+        return make(session.analysis_experiment(), mesh_settings=session.effective_mesh_settings(),
+                    nu=float(session.identification.nu))
+
+    def identify_work(self, session, effects=()) -> Work:
+        """Identify a model with ``effects`` (a new version). A new check starts when the
+        inputs changed (or there is none yet); the work runs on the worker thread."""
+        effects = tuple(effects)
+        inputs = self.inputs_of(session)
+        if inputs is None:
+            raise ElastoidError("open an experiment first")
+        new = self.check is None or inputs != self.inputs
+        check = self._make(session) if new else self.check
+        inclusion = self.current_inclusion if ("inclusion" in effects and not new) else None
+        if "inclusion" in effects and inclusion is None:
+            raise ElastoidError("an inclusion is located by the diagnosis: diagnose, then add the inclusion; "
+                                "after that it can be identified with other effects")
+        prev = self.snapshot if not new else None
+
+        def work(progress, cancel):
+            label = ", ".join(effects) or "baseline"
+            progress(f"identifying the model ({label})")
+            v = check.identify(effects, inclusion=inclusion, progress=progress, cancel=cancel,
+                               note=f"identified ({label})")
+            progress("comparing the model with the measurements")
+            cmp = check.compare()
+            return (check, inputs, Snapshot(check.history, cmp, prev.diagnosis if prev else None,
+                                            prev.diagnosed_version if prev else None, "identify",
+                                            f"version {v.index} identified: {v.label}; {_errors_text(v.misfit)}"))
+
+        return work
+
+    def diagnose_work(self, candidates=None) -> Work:
+        check, prev, inputs = self._need_check(), self.snapshot, self.inputs
+        candidates = tuple(candidates) if candidates is not None else None
+        if candidates is not None and not candidates:
+            raise ElastoidError("choose at least one candidate effect to try")
+
+        def work(progress, cancel):
+            d = check.diagnose(candidates, progress=progress, cancel=cancel)
+            h = check.history
+            return (check, inputs, Snapshot(h, prev.comparison, d, h.current, "diagnose",
+                                                 f"diagnosis: verdict {d.verdict} ({d.seconds:.0f} s)"))
+
+        return work
+
+    def add_work(self, effect: str | None = None) -> Work:
+        check = self._need_check()
+        if not self.diagnosis_is_current():
+            raise ElastoidError("the last diagnosis was made for another version: diagnose the current one first")
+        d, dv, inputs = self.snapshot.diagnosis, self.snapshot.diagnosed_version, self.inputs
+        effect = effect or d.verdict
+        if effect == "none":
+            raise ElastoidError("the diagnosis found no effect that earns its parameters: nothing to add")
+
+        def work(progress, cancel):
+            progress(f"adding {effect}")
+            v = check.add(effect)
+            progress("comparing the model with the measurements")
+            cmp = check.compare()
+            return (check, inputs, Snapshot(check.history, cmp, d, dv, "add",
+                                                 f"added {effect}: version {v.index}, {_errors_text(v.misfit)}"))
+
+        return work
+
+    def revert_work(self, index: int) -> Work:
+        check, prev, inputs = self._need_check(), self.snapshot, self.inputs
+        if not 0 <= index < self.n_versions:
+            raise ElastoidError(f"there is no version {index}")
+
+        def work(progress, cancel):
+            v = check.revert(index)
+            progress(f"version {index} is current again; comparing it with the measurements")
+            cmp = check.compare()
+            return (check, inputs, Snapshot(check.history, cmp, prev.diagnosis, prev.diagnosed_version,
+                                                 "revert", f"reverted to version {index}: {v.label}"))
+
+        return work
+
+    def _need_check(self):
+        if self.check is None or self.snapshot is None:
+            raise ElastoidError("identify a model first")
+        return self.check
+
+    def apply(self, result) -> Snapshot:
+        """Take a finished work's result (on the GUI thread)."""
+        check, inputs, snap = result
+        self.check, self.inputs, self.snapshot = check, inputs, snap
+        return snap
+
+
+# ---------------------------------------------------------------------------
+# text and arrays for the panel
+# ---------------------------------------------------------------------------
+
+
+def _errors_text(misfit: dict) -> str:
+    f, u = misfit.get("force_rms_N"), misfit.get("displacement_rms_px")
+    parts = []
+    if f is not None:
+        parts.append(f"force misfit {f:.4f} N")
+    if u is not None:
+        parts.append(f"displacement misfit {u:.3f} px")
+    return ", ".join(parts)
+
+
+def _num(v: float) -> str:
+    if v is None or not isinstance(v, (int, float)) or not math.isfinite(v):
+        return "-"
+    a = abs(v)
+    if a >= 100:
+        return f"{v:.1f}"
+    if a >= 1:
+        return f"{v:.2f}"
+    return f"{v:.3g}"
+
+
+def parameters_text(parameters: dict, inclusion: dict | None = None, only: tuple | None = None) -> str:
+    """'E_B 17.5, E_A 61.4 kPa; g1 0.346, tau1_s 2.00' (moduli first; ``only``: names to keep)."""
+    moduli = [(k, v) for k, v in parameters.items() if k.startswith("E_") and k.endswith("_kPa")]
+    other = [(k, v) for k, v in parameters.items() if not (k.startswith("E_") and k.endswith("_kPa"))
+             and isinstance(v, (int, float))]
+    if only is not None:
+        moduli = [(k, v) for k, v in moduli if k in only]
+        other = [(k, v) for k, v in other if k in only]
+    out = []
+    if moduli:
+        out.append(", ".join(f"{k[2:-4]} {_num(v)}" for k, v in moduli) + " kPa")
+    if other:
+        out.append(", ".join(f"{k} {_num(v)}" for k, v in other))
+    if inclusion:
+        c = ", ".join(f"{x:.1f}" for x in inclusion.get("center_mm", ()))
+        out.append(f"inclusion {inclusion.get('name', '')} at ({c}) mm, radius {inclusion.get('radius_mm', 0):.1f} mm")
+    return "; ".join(out)
+
+
+def key_parameters(candidate) -> str:
+    """A candidate's own parameters first (the effect's), then the moduli it refitted."""
+    from app.core.effects import INFO
+
+    if not candidate.parameters:
+        return "-"
+    own = tuple(p.name for p in INFO[candidate.effect].parameters) if candidate.effect in INFO else ()
+    inc = candidate.inclusion if candidate.effect == "inclusion" else None
+    first = parameters_text(candidate.parameters, None, own) if own else ""
+    moduli = parameters_text(candidate.parameters, inc, tuple(k for k in candidate.parameters if k.startswith("E_")))
+    return "; ".join(x for x in (first, moduli) if x)
+
+
+def score_text(score: float) -> str:
+    return "could not be fitted" if not math.isfinite(score) else f"{score:+.1f}"
+
+
+def diagnosis_rows(diagnosis) -> list[dict]:
+    """One row per candidate, ranked: rank, effect, title, score, key parameters, evidence, verdict?"""
+    from app.core.effects import INFO
+
+    rows = []
+    for i, c in enumerate(diagnosis.candidates, 1):
+        rows.append({"rank": i, "effect": c.effect, "title": INFO[c.effect].title if c.effect in INFO else "",
+                     "score": c.score, "score_text": score_text(c.score), "parameters": key_parameters(c),
+                     "evidence": c.evidence or "", "verdict": c.effect == diagnosis.verdict,
+                     "fitted": c.problem is not None and math.isfinite(c.score)})
+    return rows
+
+
+def history_rows(history) -> list[dict]:
+    rows = []
+    for v in history.versions:
+        rows.append({"index": v.index, "label": v.label, "effects": ", ".join(v.effects) or "none",
+                     "parameters": parameters_text(v.parameters, v.inclusion),
+                     "force_rms_N": v.misfit.get("force_rms_N"),
+                     "displacement_rms_px": v.misfit.get("displacement_rms_px"),
+                     "chi2": v.misfit.get("chi2"), "note": v.note, "current": v.index == history.current,
+                     "parent": v.parent})
+    return rows
+
+
+def compare_text(history, i: int, j: int) -> str:
+    """``history.compare(i, j)`` in words: what was added or removed, the parameters, the errors."""
+    c = history.compare(i, j)
+    a, b = history.versions[i], history.versions[j]
+    lines = [f"Version {i} ({a.label}) -> {j} ({b.label})",
+             f"added: {', '.join(c['added']) or 'nothing'}; removed: {', '.join(c['removed']) or 'nothing'}",
+             "parameters"]
+    for k, (x, y) in c["parameters"].items():
+        change = ""
+        if isinstance(x, (int, float)) and isinstance(y, (int, float)) and x:
+            change = f"  {100 * (y - x) / x:+.1f}%"
+        lines.append(f"  {k:10s} {_num(x):>7s} -> {_num(y):>7s}{change}")
+    lines.append(f"errors, RMS (ratio {j} / {i})")
+    names = {"force_rms_N": "force N", "displacement_rms_px": "displacement px",
+             "displacement_systematic_px": "systematic px", "chi2": "chi2"}
+    for k, (x, y, r) in c["errors"].items():
+        ratio = f"x{r:.3g}" if r is not None and math.isfinite(r) else "-"
+        lines.append(f"  {names.get(k, k):15s} {_num(x):>7s} -> {_num(y):>7s} {ratio}")
+    return "\n".join(lines)
+
+
+def arrow_segments(points: np.ndarray, vectors: np.ndarray, scale: float = 1.0, head_px: float = 3.0,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """x, y arrays for a line plot drawn with ``connect="pairs"``: a shaft from each
+    point along its vector (times ``scale``) and two strokes of an arrow head."""
+    p = np.asarray(points, float).reshape(-1, 2)
+    v = scale * np.asarray(vectors, float).reshape(-1, 2)
+    keep = np.all(np.isfinite(p), 1) & np.all(np.isfinite(v), 1)
+    p, v = p[keep], v[keep]
+    if len(p) == 0:
+        return np.zeros(0), np.zeros(0)
+    q = p + v
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    u = np.divide(v, n, out=np.zeros_like(v), where=n > 0)
+    h = np.minimum(head_px, 0.45 * n)
+    c, s = math.cos(math.radians(28)), math.sin(math.radians(28))
+    back = -u
+    r1 = np.column_stack([c * back[:, 0] - s * back[:, 1], s * back[:, 0] + c * back[:, 1]]) * h
+    r2 = np.column_stack([c * back[:, 0] + s * back[:, 1], -s * back[:, 0] + c * back[:, 1]]) * h
+    seg = np.stack([p, q, q, q + r1, q, q + r2], axis=1).reshape(-1, 2)
+    return seg[:, 0].copy(), seg[:, 1].copy()
+
+
+def auto_difference_scale(frame, target_px: float) -> float:
+    """A scale (1, 2 or 5 x 10^k, at least 1) that draws the larger valid differences (95th
+    percentile) at most about ``target_px`` long."""
+    d = np.asarray(frame.difference_px)[np.asarray(frame.valid, bool)]
+    if len(d) == 0:
+        return 1.0
+    m = float(np.percentile(np.linalg.norm(d, axis=1), 95))
+    if not math.isfinite(m) or m <= 0:
+        return 1.0
+    raw = target_px / m
+    k = 10.0 ** math.floor(math.log10(raw))
+    nice = max(f * k for f in (1.0, 2.0, 5.0) if f * k <= raw * 1.001)
+    return max(1.0, nice)
+
+
+def frame_label(fc) -> str:
+    """'frame 2 (3.00 mm) vs 0' for a FrameComparison: the target frame, its probe travel, the source."""
+    return f"frame {fc.target} ({fc.displacement_mm:.2f} mm) vs {fc.source}"

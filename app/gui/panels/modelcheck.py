@@ -1,0 +1,873 @@
+"""Model check panel: compare the identified model with the measurements, diagnose
+which physical effect it misses, add it, and watch the error fall across versions.
+
+Everything runs through :class:`app.core.diagnose.ModelCheck` (via the Qt-free
+:class:`~app.gui.models.modelcheck.ModelCheckModel`) on a
+:class:`~app.gui.workers.Task`: identify, diagnose, add and revert never block
+the window, report their progress lines here and in the log, and stop at Cancel.
+
+- Compare: the force over the whole log (loading, hold, unloading), measured and
+  modelled; per frame, the residual map over the ROI, the tracked displacement
+  against the model's (vector map) and each region's share of the misfit.
+- Diagnosis: the ranked candidates (score, key parameters, evidence), the noise
+  model, the verdict; add the verdict or another candidate.
+- History: the versions, the error across them, a comparison of two, revert.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QBrush, QColor
+from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QGridLayout, QGroupBox, QHBoxLayout,
+                               QHeaderView, QLabel, QPlainTextEdit, QProgressBar, QPushButton, QSplitter,
+                               QTableWidget, QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
+
+from app.core.effects import EFFECT_IDS, INFO
+
+from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
+                                 diagnosis_rows, frame_label, history_rows, parameters_text)
+from ..models.session import SessionModel
+from ..style import mono_font, region_color, style_plot
+from ..workers import Task
+from .base import Panel
+from .common import hint, ispin, normalized, scrolled
+
+log = logging.getLogger("elastoid.gui")
+
+LOCK_REASON = "a model check is running"
+MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
+VERDICT_BG = "#fff3c4"
+ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting"}
+
+
+def _item(text: str, *, bold: bool = False, tip: str = "", align=None) -> QTableWidgetItem:
+    it = QTableWidgetItem(text)
+    if bold:
+        f = it.font()
+        f.setBold(True)
+        it.setFont(f)
+    if tip:
+        it.setToolTip(tip)
+    if align is not None:
+        it.setTextAlignment(align)
+    return it
+
+
+def _table(cols: list[str]) -> QTableWidget:
+    t = QTableWidget(0, len(cols))
+    t.setHorizontalHeaderLabels(cols)
+    t.verticalHeader().setVisible(False)
+    t.setEditTriggers(QAbstractItemView.NoEditTriggers)
+    t.setSelectionBehavior(QAbstractItemView.SelectRows)
+    t.setSelectionMode(QAbstractItemView.SingleSelection)
+    t.setWordWrap(True)
+    return t
+
+
+def _image_plot(graphics: pg.GraphicsLayoutWidget, title: str) -> pg.PlotItem:
+    p = graphics.addPlot(title=title)
+    p.getViewBox().setAspectLocked(True)
+    p.getViewBox().invertY(True)
+    p.setLabel("bottom", "column", units="px")
+    p.setLabel("left", "row", units="px")
+    for name in ("left", "bottom"):
+        p.getAxis(name).enableAutoSIPrefix(False)
+    return p
+
+
+class ModelCheckPanel(Panel):
+    title = "Model check"
+
+    def __init__(self, session: SessionModel, parent=None, *, model: ModelCheckModel | None = None):
+        super().__init__(parent)
+        self.session = session
+        self.model = model or ModelCheckModel()
+        self.task: Task | None = None
+        self._action = ""
+        self._gen = 0
+        self._owns_lock = False
+        self._t_start = 0.0
+        self._updating = False
+        self._build()
+        session.experiment_changed.connect(self._on_experiment)
+        for sig in (session.specimen_changed, session.roi_changed, session.mesh_settings_changed,
+                    session.identification_changed):
+            sig.connect(self._on_inputs)
+        session.lock_changed.connect(lambda *_: self._refresh_enabled())
+        self._on_experiment()
+
+    # ---- layout ------------------------------------------------------------------------------
+    def _build(self) -> None:
+        outer = QHBoxLayout(self)
+        outer.setContentsMargins(4, 4, 4, 4)
+        split = QSplitter(Qt.Horizontal)
+        outer.addWidget(split)
+        split.addWidget(scrolled(self._build_side()))
+        self.tabs = QTabWidget()
+        self.tabs.addTab(self._build_compare(), "Compare")
+        self.tabs.addTab(self._build_diagnosis(), "Diagnosis")
+        self.tabs.addTab(self._build_history(), "History")
+        split.addWidget(self.tabs)
+        split.setStretchFactor(1, 1)
+
+    def _effect_boxes(self, grid: QGridLayout, prefix: str, checked: bool) -> dict[str, QCheckBox]:
+        boxes = {}
+        for k, e in enumerate(EFFECT_IDS):
+            cb = QCheckBox(e)
+            cb.setObjectName(f"{prefix}_{e}")
+            cb.setChecked(checked)
+            cb.setToolTip(f"{INFO[e].title}; relaxes the assumption: {INFO[e].assumption}")
+            grid.addWidget(cb, k // 2, k % 2)
+            boxes[e] = cb
+        return boxes
+
+    def _build_side(self) -> QWidget:
+        side = QWidget()
+        sl = QVBoxLayout(side)
+        sl.setContentsMargins(0, 0, 0, 0)
+
+        mbox = QGroupBox("Model")
+        ml = QVBoxLayout(mbox)
+        self.version_label = QLabel("No model yet.")
+        self.version_label.setWordWrap(True)
+        ml.addWidget(self.version_label)
+        ml.addWidget(hint("Effects to identify with (none: the paper's baseline model):"))
+        g = QGridLayout()
+        self.identify_boxes = self._effect_boxes(g, "identify", False)
+        ml.addLayout(g)
+        b = QHBoxLayout()
+        self.identify_button = QPushButton("Identify")
+        self.identify_button.setObjectName("primary")
+        self.identify_button.setToolTip("Fit the model with the ticked effects to the images and the force log; "
+                                        "it becomes a new version")
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.setEnabled(False)
+        b.addWidget(self.identify_button)
+        b.addWidget(self.cancel_button)
+        b.addStretch(1)
+        ml.addLayout(b)
+        self.identify_button.clicked.connect(self.identify)
+        self.cancel_button.clicked.connect(self.cancel)
+        sl.addWidget(mbox)
+
+        dbox = QGroupBox("Diagnose")
+        dl = QVBoxLayout(dbox)
+        dl.addWidget(hint("Candidate effects to try on top of the current model:"))
+        g2 = QGridLayout()
+        self.candidate_boxes = self._effect_boxes(g2, "candidate", True)
+        for cb in self.candidate_boxes.values():
+            cb.toggled.connect(lambda *_: self._refresh_enabled())
+        dl.addLayout(g2)
+        self.diagnose_button = QPushButton("Diagnose")
+        self.diagnose_button.setObjectName("primary")
+        self.diagnose_button.setToolTip("Refit the current model with each candidate effect and rank them by an "
+                                        "information criterion (BIC) under the stated noise model")
+        self.diagnose_button.clicked.connect(self.diagnose)
+        dl.addWidget(self.diagnose_button)
+        sl.addWidget(dbox)
+
+        self.progress = QProgressBar()
+        self.progress.setRange(0, 1)
+        self.progress.setValue(0)
+        self.progress.setTextVisible(True)
+        self.progress.setFormat("idle")
+        sl.addWidget(self.progress)
+        self.state = hint("")
+        sl.addWidget(self.state)
+        self.note = hint("Open an experiment, then identify the baseline model here.")
+        sl.addWidget(self.note)
+        sl.addStretch(1)
+        side.setMinimumWidth(270)
+        side.setMaximumWidth(300)
+        return side
+
+    def _build_compare(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        lay.setContentsMargins(2, 2, 2, 2)
+        self.compare_summary = hint("The comparison of the current model with the measurements appears here.")
+        lay.addWidget(self.compare_summary)
+        vsplit = QSplitter(Qt.Vertical)
+        self.force_graphics = pg.GraphicsLayoutWidget()
+        self.force_graphics.setMinimumHeight(150)
+        self.force_time = self.force_graphics.addPlot(row=0, col=0, title="Force over the log: measured and model")
+        self.force_time.setLabel("bottom", "time", units="s")
+        self.force_time.setLabel("left", "force", units="N")
+        self.force_travel = self.force_graphics.addPlot(row=0, col=1, title="Force vs probe travel")
+        self.force_travel.setLabel("bottom", "probe travel", units="mm")
+        self.force_travel.setLabel("left", "force", units="N")
+        self.force_curves = {}
+        for key, plot in (("time", self.force_time), ("travel", self.force_travel)):
+            style_plot(plot)
+            plot.addLegend(offset=(-5, 5), labelTextSize="8pt", brush=pg.mkBrush(255, 255, 255, 210))
+            self.force_curves[key] = (plot.plot([], [], pen=pg.mkPen("#8a8a8a", width=1), name="measured"),
+                                      plot.plot([], [], pen=pg.mkPen("#d55e00", width=2), name="model"))
+        vsplit.addWidget(self.force_graphics)
+
+        frame_w = QWidget()
+        fl = QVBoxLayout(frame_w)
+        fl.setContentsMargins(0, 0, 0, 0)
+        row = QHBoxLayout()
+        row.addWidget(QLabel("Frame"))
+        self.frame_box = QComboBox()
+        self.frame_box.setSizeAdjustPolicy(QComboBox.AdjustToContents)
+        self.frame_box.currentIndexChanged.connect(self._draw_frame)
+        row.addWidget(self.frame_box)
+        row.addSpacing(10)
+        self.show_boxes = {}
+        for key, text, color in (("measured", "tracked", MEASURED), ("model", "model", MODEL),
+                                 ("difference", "difference", DIFFERENCE)):
+            cb = QCheckBox(text)
+            cb.setChecked(True)
+            cb.setStyleSheet(f"QCheckBox {{ color: {color}; font-weight: 600; }}")
+            cb.toggled.connect(self._draw_frame)
+            self.show_boxes[key] = cb
+            row.addWidget(cb)
+        self.diff_scale = ispin(0, 1000, 0, suffix="x", tip="Difference arrows drawn this many times longer "
+                                "(0: automatic)")
+        self.diff_scale.setSpecialValueText("auto")
+        self.diff_scale.valueChanged.connect(self._draw_frame)
+        row.addWidget(QLabel("difference scale"))
+        row.addWidget(self.diff_scale)
+        row.addStretch(1)
+        fl.addLayout(row)
+        maps = QSplitter(Qt.Horizontal)
+        self.residual_graphics = pg.GraphicsLayoutWidget()
+        self.residual_plot = _image_plot(self.residual_graphics, "Residual map: 1 - local correlation")
+        self.residual_background = pg.ImageItem()
+        self.residual_image = pg.ImageItem()
+        self.residual_image.setOpacity(0.85)
+        self.residual_plot.addItem(self.residual_background)
+        self.residual_plot.addItem(self.residual_image)
+        self.residual_bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=pg.colormap.get("inferno"), width=12,
+                                            interactive=False, colorMapMenu=False)
+        self.residual_bar.setImageItem(self.residual_image, insert_in=self.residual_plot)
+        self.residual_graphics.setMinimumWidth(200)
+        maps.addWidget(self.residual_graphics)
+
+        self.vector_graphics = pg.GraphicsLayoutWidget()
+        self.vector_plot = _image_plot(self.vector_graphics, "Displacement: tracked, model, difference")
+        # the coloured check boxes above are the legend
+        self.vector_background = pg.ImageItem()
+        self.vector_plot.addItem(self.vector_background)
+        self.roi_outline = self.vector_plot.plot([], [], pen=pg.mkPen("#ffd400", width=1, style=Qt.DashLine))
+        self.vector_curves = {}
+        # the model under the tracked arrows (they mostly coincide), the difference on top
+        for key, color, width, name in (("model", MODEL, 2.4, "model"), ("measured", MEASURED, 1.3, "tracked"),
+                                        ("difference", DIFFERENCE, 1.8, "difference x scale")):
+            c = pg.PlotDataItem([], [], connect="pairs", pen=pg.mkPen(color, width=width), name=name)
+            self.vector_plot.addItem(c)
+            self.vector_curves[key] = c
+        self.vector_graphics.setMinimumWidth(200)
+        maps.addWidget(self.vector_graphics)
+
+        share = QWidget()
+        sl = QVBoxLayout(share)
+        sl.setContentsMargins(0, 0, 0, 0)
+        self.share_graphics = pg.GraphicsLayoutWidget()
+        self.share_plot = self.share_graphics.addPlot(title="Misfit by region")
+        self.share_plot.setLabel("left", "share", units="%")
+        self.share_plot.getAxis("left").enableAutoSIPrefix(False)
+        self.share_plot.setMouseEnabled(False, False)
+        self.share_plot.showGrid(x=False, y=True, alpha=0.22)
+        self.share_bars = pg.BarGraphItem(x=[], height=[], width=0.38)
+        self.share_bars_all = pg.BarGraphItem(x=[], height=[], width=0.38)
+        self.share_plot.addItem(self.share_bars_all)
+        self.share_plot.addItem(self.share_bars)
+        sl.addWidget(self.share_graphics, 1)
+        self.share_table = _table(["Region", "Frame", "All", "Map"])
+        self.share_table.setSelectionMode(QAbstractItemView.NoSelection)
+        self.share_table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeToContents)
+        self.share_table.setMaximumHeight(110)
+        self.share_table.setToolTip("Each region's share of the squared displacement misfit (tracked minus model): "
+                                    "Frame, this frame; All, all frames; Map, its share of the residual map")
+        sl.addWidget(self.share_table)
+        share.setMinimumWidth(170)
+        share.setMaximumWidth(230)
+        maps.addWidget(share)
+        maps.setStretchFactor(0, 2)
+        maps.setStretchFactor(1, 2)
+        maps.setStretchFactor(2, 1)
+        fl.addWidget(maps, 1)
+        self.frame_note = hint("")
+        fl.addWidget(self.frame_note)
+        vsplit.addWidget(frame_w)
+        vsplit.setStretchFactor(0, 2)
+        vsplit.setStretchFactor(1, 5)
+        lay.addWidget(vsplit, 1)
+        return w
+
+    def _build_diagnosis(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        lay.setContentsMargins(4, 4, 4, 4)
+        self.verdict_label = QLabel("No diagnosis yet: identify a model, then press Diagnose.")
+        self.verdict_label.setWordWrap(True)
+        self.verdict_label.setTextFormat(Qt.RichText)
+        self.verdict_label.setStyleSheet(f"QLabel {{ background: {VERDICT_BG}; border: 1px solid #e0c76a; "
+                                         f"border-radius: 4px; padding: 6px; font-size: 11pt; }}")
+        lay.addWidget(self.verdict_label)
+        self.diagnosis_current = hint("")
+        lay.addWidget(self.diagnosis_current)
+        self.noise_label = hint("")
+        lay.addWidget(self.noise_label)
+        self.diagnosis_table = _table(["#", "Effect", "Score (BIC)", "Key parameters", "Evidence"])
+        hh = self.diagnosis_table.horizontalHeader()
+        for c in range(4):
+            hh.setSectionResizeMode(c, QHeaderView.ResizeToContents)
+        hh.setSectionResizeMode(4, QHeaderView.Stretch)
+        self.diagnosis_table.itemSelectionChanged.connect(self._refresh_enabled)
+        hh.sectionResized.connect(lambda *_: self.diagnosis_table.resizeRowsToContents())
+        lay.addWidget(self.diagnosis_table, 1)
+        lay.addWidget(hint("Score = chi2(current) - chi2(current + effect) - k ln N: the drop of the misfit under "
+                           "the noise model, less what the effect's k parameters cost (BIC). The verdict is the best "
+                           "positive score, else none."))
+        b = QHBoxLayout()
+        self.add_verdict_button = QPushButton("Add verdict")
+        self.add_verdict_button.setObjectName("primary")
+        self.add_verdict_button.clicked.connect(lambda: self.add(None))
+        self.add_selected_button = QPushButton("Add selected effect")
+        self.add_selected_button.clicked.connect(self.add_selected)
+        b.addWidget(self.add_verdict_button)
+        b.addWidget(self.add_selected_button)
+        b.addStretch(1)
+        lay.addLayout(b)
+        return w
+
+    def _build_history(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        lay.setContentsMargins(4, 4, 4, 4)
+        vs = QSplitter(Qt.Vertical)
+        top = QWidget()
+        tl = QVBoxLayout(top)
+        tl.setContentsMargins(0, 0, 0, 0)
+        self.history_table = _table(["#", "Model", "Parameters", "Force RMS (N)", "Displacement RMS (px)", "chi2",
+                                     "Note"])
+        self.history_table.setWordWrap(False)
+        hh = self.history_table.horizontalHeader()
+        for c in (0, 1, 3, 4, 5, 6):
+            hh.setSectionResizeMode(c, QHeaderView.ResizeToContents)
+        hh.setSectionResizeMode(2, QHeaderView.Stretch)
+        self.history_table.itemSelectionChanged.connect(self._refresh_enabled)
+        self.history_table.setMinimumHeight(80)
+        tl.addWidget(self.history_table, 1)
+        row = QHBoxLayout()
+        self.revert_button = QPushButton("Make the selected version current")
+        self.revert_button.setToolTip("Revert: the selected version becomes the current model again "
+                                      "(later versions are kept, to compare)")
+        self.revert_button.clicked.connect(self.revert_selected)
+        row.addWidget(self.revert_button)
+        row.addWidget(hint("\u25b6 marks the current version; reverting keeps the later ones."))
+        row.addStretch(1)
+        tl.addLayout(row)
+        vs.addWidget(top)
+
+        bottom = QSplitter(Qt.Horizontal)
+        self.error_graphics = pg.GraphicsLayoutWidget()
+        self.error_graphics.setMinimumSize(260, 200)
+        self.error_plots = {}
+        self.error_curves = {}
+        self.error_noise = {}
+        self.error_current = {}
+        for r, (key, title, unit) in enumerate((("force_rms_N", "Force misfit across versions", "N RMS"),
+                                                ("displacement_rms_px", "Displacement misfit across versions",
+                                                 "px RMS"))):
+            p = self.error_graphics.addPlot(row=r, col=0, title=title)
+            p.setLabel("left", unit)
+            style_plot(p)
+            p.setMouseEnabled(False, False)
+            p.hideButtons()
+            self.error_curves[key] = p.plot([], [], pen=pg.mkPen("#1f5fa8", width=2), symbol="o", symbolSize=8,
+                                            symbolBrush="#1f5fa8")
+            self.error_noise[key] = pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#555", width=1, style=Qt.DashLine),
+                                                    label="noise", labelOpts={"position": 0.93, "color": "#555"})
+            self.error_noise[key].setVisible(False)
+            p.addItem(self.error_noise[key], ignoreBounds=True)
+            self.error_current[key] = pg.ScatterPlotItem([], [], symbol="star", size=16, brush="#ffd400",
+                                                         pen=pg.mkPen("#333"))
+            p.addItem(self.error_current[key])
+            self.error_plots[key] = p
+        bottom.addWidget(self.error_graphics)
+
+        cmpw = QWidget()
+        cl = QVBoxLayout(cmpw)
+        cl.setContentsMargins(0, 0, 0, 0)
+        row = QHBoxLayout()
+        row.addWidget(QLabel("Compare"))
+        self.compare_a = QComboBox()
+        self.compare_b = QComboBox()
+        for box in (self.compare_a, self.compare_b):
+            box.setSizeAdjustPolicy(QComboBox.AdjustToContents)
+        row.addWidget(self.compare_a, 1)
+        row.addWidget(QLabel("with"))
+        row.addWidget(self.compare_b, 1)
+        self.compare_button = QPushButton("Compare")
+        self.compare_button.clicked.connect(self.compare_versions)
+        row.addWidget(self.compare_button)
+        cl.addLayout(row)
+        self.compare_text = QPlainTextEdit()
+        self.compare_text.setObjectName("report")
+        self.compare_text.setReadOnly(True)
+        self.compare_text.setFont(mono_font())
+        self.compare_text.setLineWrapMode(QPlainTextEdit.NoWrap)
+        self.compare_text.setPlaceholderText("Choose two versions and press Compare: what was added, how the "
+                                             "parameters moved, and the ratio of each error.")
+        cl.addWidget(self.compare_text, 1)
+        bottom.addWidget(cmpw)
+        bottom.setStretchFactor(0, 1)
+        bottom.setStretchFactor(1, 1)
+        bottom.setSizes([480, 460])
+        vs.addWidget(bottom)
+        vs.setStretchFactor(0, 1)
+        vs.setStretchFactor(1, 3)
+        lay.addWidget(vs, 1)
+        return w
+
+    # ---- session -> view ----------------------------------------------------------------------
+    def _on_experiment(self, *_) -> None:
+        if self.task is not None:  # its result is for the previous experiment
+            self._gen += 1
+            self.task.cancel()
+        self.model.reset()
+        self._show(None)
+        has = self.session.has_experiment
+        self.note.setText("Identify the baseline model first (no effect ticked), then compare, diagnose and add "
+                          "effects." if has else "Open an experiment, then identify the baseline model here.")
+        self._refresh_enabled()
+
+    def _on_inputs(self, *_) -> None:
+        if self.model.stale(self.session):
+            self.note.setText("<span style='color:#b26a00'>The ROI, specimen, mesh or Poisson's ratio changed since "
+                              "this model check: Identify starts a new one.</span>")
+        self._refresh_enabled()
+
+    def _refresh_enabled(self, *_) -> None:
+        s, m = self.session, self.model
+        has = s.has_experiment
+        running = self.task is not None
+        other_lock = s.locked_by is not None and not self._owns_lock
+        stale = m.stale(s)
+        free = has and not running and not other_lock
+        cur = set(m.current_effects)
+        for e, cb in self.identify_boxes.items():
+            cb.setEnabled(free and (e != "inclusion" or m.current_inclusion is not None))
+        for e, cb in self.candidate_boxes.items():
+            cb.setEnabled(free and e not in cur)
+        self.identify_button.setEnabled(free)
+        self.cancel_button.setEnabled(running)
+        can_diag = free and m.n_versions > 0 and not stale
+        self.diagnose_button.setEnabled(can_diag and bool(self.chosen_candidates()))
+        diag_ok = can_diag and m.diagnosis_is_current()
+        d = m.snapshot.diagnosis if m.snapshot else None
+        self.add_verdict_button.setEnabled(bool(diag_ok and d is not None and d.verdict != "none"))
+        self.add_verdict_button.setText(f"Add verdict ({d.verdict})" if d is not None and d.verdict != "none"
+                                        else "Add verdict")
+        sel = self.selected_candidate()
+        self.add_selected_button.setEnabled(bool(diag_ok and sel is not None and sel["fitted"]))
+        self.add_selected_button.setText(f"Add selected effect ({sel['effect']})" if sel else "Add selected effect")
+        h = m.history
+        hsel = self.selected_version()
+        self.revert_button.setEnabled(bool(free and h is not None and not stale and hsel is not None
+                                           and hsel != h.current))
+        self.compare_button.setEnabled(h is not None and len(h) >= 2)
+        if other_lock:
+            self.state.setText(f"Waiting: {s.locked_by}.")
+
+    def chosen_candidates(self) -> tuple[str, ...]:
+        cur = set(self.model.current_effects)
+        return tuple(e for e, cb in self.candidate_boxes.items() if cb.isChecked() and e not in cur)
+
+    def chosen_effects(self) -> tuple[str, ...]:
+        return tuple(e for e, cb in self.identify_boxes.items() if cb.isChecked())
+
+    def selected_candidate(self) -> dict | None:
+        s = self.model.snapshot
+        if s is None or s.diagnosis is None:
+            return None
+        rows = self.diagnosis_table.selectionModel().selectedRows()
+        if not rows:
+            return None
+        r = rows[0].row()
+        dr = diagnosis_rows(s.diagnosis)
+        return dr[r] if r < len(dr) else None
+
+    def selected_version(self) -> int | None:
+        rows = self.history_table.selectionModel().selectedRows()
+        return rows[0].row() if rows else None
+
+    # ---- actions ------------------------------------------------------------------------------------
+    def identify(self) -> None:
+        self._start("identify", lambda: self.model.identify_work(self.session, self.chosen_effects()))
+
+    def diagnose(self) -> None:
+        self._start("diagnose", lambda: self.model.diagnose_work(self.chosen_candidates()))
+
+    def add(self, effect: str | None = None) -> None:
+        self._start("add", lambda: self.model.add_work(effect))
+
+    def add_selected(self) -> None:
+        sel = self.selected_candidate()
+        if sel is not None:
+            self.add(sel["effect"])
+
+    def revert(self, index: int) -> None:
+        self._start("revert", lambda: self.model.revert_work(int(index)))
+
+    def revert_selected(self) -> None:
+        i = self.selected_version()
+        if i is not None:
+            self.revert(i)
+
+    def compare_versions(self) -> None:
+        h = self.model.history
+        if h is None or len(h) < 2:
+            return
+        i, j = self.compare_a.currentIndex(), self.compare_b.currentIndex()
+        if i < 0 or j < 0:
+            return
+        self.compare_text.setPlainText(compare_text(h, i, j))
+
+    def cancel(self) -> None:
+        if self.task is not None:
+            self.task.cancel()
+            self.state.setText("Cancelling...")
+
+    @property
+    def running(self) -> bool:
+        return self.task is not None
+
+    def _start(self, action: str, make_work) -> None:
+        if self.task is not None:
+            return
+        try:
+            work = make_work()
+        except Exception as exc:  # the core's message, shown as it is
+            self.error.emit(exc, "")
+            return
+        self._action = action
+        gen = self._gen
+        self.task = Task(work, f"modelcheck-{action}")
+        self.task.progress.connect(self._task_progress)
+        self.task.succeeded.connect(lambda r, gen=gen: self._task_done(r, gen))
+        self.task.failed.connect(lambda e, d, gen=gen: self._task_failed(e, d, gen))
+        self.task.cancelled.connect(self._task_cancelled)
+        self.task.finished.connect(self._task_finished)
+        if self.session.locked_by is None:
+            self._owns_lock = True
+            self.session.set_locked(LOCK_REASON)
+        self._t_start = time.monotonic()
+        self.progress.setRange(0, 0)
+        self.progress.setFormat(ACTIONS[action])
+        self.state.setText(f"{ACTIONS[action]}...")
+        self.busy.emit(f"Model check: {ACTIONS[action].lower()}", 0, 0)
+        log.info("model check: %s", {"identify": f"identify with {', '.join(self.chosen_effects()) or 'no effect'}",
+                                     "diagnose": f"diagnose, candidates {', '.join(self.chosen_candidates())}",
+                                     "add": "add an effect", "revert": "revert"}[action])
+        self._refresh_enabled()
+        self.task.start()
+
+    def _task_progress(self, text: str) -> None:
+        line = text[:1].upper() + text[1:]
+        self.state.setText(line)
+        self.progress.setFormat(line[:48])
+        self.status.emit(f"model check: {text}")
+        log.info("model check: %s", text)
+
+    def _task_done(self, result, gen: int) -> None:
+        if gen != self._gen:
+            log.info("model check result discarded: the experiment changed during the run")
+            return
+        snap = self.model.apply(result)
+        self._show(snap)
+        secs = time.monotonic() - self._t_start
+        self.state.setText(f"Done in {secs:.1f} s: {snap.message}.")
+        self.status.emit(f"model check: {snap.message}")
+        log.info("model check: %s (%.1f s)", snap.message, secs)
+        if snap.action == "diagnose":
+            self.tabs.setCurrentIndex(1)
+        elif snap.action == "add":
+            self.tabs.setCurrentIndex(2)
+        elif snap.action == "identify" and len(snap.history) == 1:
+            self.tabs.setCurrentIndex(0)
+        self.note.setText("")
+
+    def _task_failed(self, exc, details, gen: int) -> None:
+        if gen != self._gen:
+            return
+        self.state.setText(f"Failed: {exc}")
+        self.error.emit(exc, details)
+
+    def _task_cancelled(self) -> None:
+        secs = time.monotonic() - self._t_start
+        self.state.setText(f"Cancelled after {secs:.1f} s; the model is as it was.")
+        self.status.emit("model check cancelled")
+        log.info("model check: %s cancelled after %.1f s", self._action, secs)
+
+    def _task_finished(self) -> None:
+        self.task = None
+        if self._owns_lock:
+            self._owns_lock = False
+            if self.session.locked_by == LOCK_REASON:
+                self.session.set_locked(None)
+        self.progress.setRange(0, 1)
+        self.progress.setValue(0)
+        self.progress.setFormat("idle")
+        self.busy.emit("", 0, 0)
+        self._refresh_enabled()
+
+    def shutdown(self) -> None:
+        self.cancel()
+
+    # ---- drawing ------------------------------------------------------------------------------------
+    def _show(self, snap) -> None:
+        self._show_version(snap)
+        self._show_comparison(snap.comparison if snap else None)
+        self._show_diagnosis(snap)
+        self._show_history(snap.history if snap else None, snap.comparison if snap else None)
+        self._refresh_enabled()
+
+    def _show_version(self, snap) -> None:
+        h = snap.history if snap else None
+        v = h.current_version if h is not None else None
+        if v is None:
+            self.version_label.setText("No model yet.")
+            return
+        self.version_label.setText(f"<b>Current: version {v.index}, {v.label}</b><br>"
+                                   f"{parameters_text(v.parameters, v.inclusion)}<br>"
+                                   f"force misfit {v.misfit.get('force_rms_N', math.nan):.4f} N RMS, displacement "
+                                   f"misfit {v.misfit.get('displacement_rms_px', math.nan):.3f} px RMS")
+        self._updating = True
+        try:
+            for e, cb in self.identify_boxes.items():
+                cb.setChecked(e in v.effects)
+        finally:
+            self._updating = False
+
+    def _show_comparison(self, cmp) -> None:
+        self.comparison = cmp
+        if cmp is None:
+            for measured, model in self.force_curves.values():
+                measured.setData([], [])
+                model.setData([], [])
+            self.frame_box.blockSignals(True)
+            self.frame_box.clear()
+            self.frame_box.blockSignals(False)
+            self.compare_summary.setText("The comparison of the current model with the measurements appears here "
+                                         "after an identification.")
+            self._draw_frame()
+            return
+        t, d = np.asarray(cmp.time_s, float), np.asarray(cmp.displacement_mm, float)
+        Fm, Fs = np.asarray(cmp.force_measured_N, float), np.asarray(cmp.force_model_N, float)
+        self.force_curves["time"][0].setData(t, Fm)
+        self.force_curves["time"][1].setData(t, Fs)
+        self.force_curves["travel"][0].setData(d, Fm)
+        self.force_curves["travel"][1].setData(d, Fs)
+        label = "baseline" if not cmp.effects else "+ " + ", ".join(cmp.effects)
+        self.compare_summary.setText(
+            f"Model <b>{label}</b>: force misfit <b>{cmp.force_rms_N:.4f} N</b> RMS (noise "
+            f"{cmp.force_noise_N:.4f} N); displacement misfit <b>{cmp.displacement_rms_px:.3f} px</b> RMS (tracking "
+            f"noise {cmp.noise_px:.3f} px). A model that explains the data leaves misfits near the noise.")
+        keep = self.frame_box.currentIndex()
+        self.frame_box.blockSignals(True)
+        self.frame_box.clear()
+        for fc in cmp.frames:
+            self.frame_box.addItem(frame_label(fc))
+        self.frame_box.setCurrentIndex(keep if 0 <= keep < len(cmp.frames) else len(cmp.frames) - 1)
+        self.frame_box.blockSignals(False)
+        self._draw_frame()
+
+    def current_frame(self):
+        cmp = getattr(self, "comparison", None)
+        i = self.frame_box.currentIndex()
+        if cmp is None or not (0 <= i < len(cmp.frames)):
+            return None
+        return cmp.frames[i]
+
+    def difference_scale(self) -> float:
+        fc = self.current_frame()
+        if fc is None:
+            return 1.0
+        v = self.diff_scale.value()
+        if v > 0:
+            return float(v)
+        c0, r0, c1, r1 = fc.roi_px
+        block = max(8.0, math.sqrt((c1 - c0) * (r1 - r0) / max(1, len(fc.valid))))
+        return auto_difference_scale(fc, 0.6 * block)
+
+    def _draw_frame(self, *_) -> None:
+        fc = self.current_frame()
+        if fc is None:
+            for item in (self.residual_image, self.residual_background, self.vector_background):
+                item.clear()
+            for c in self.vector_curves.values():
+                c.setData([], [])
+            self.roi_outline.setData([], [])
+            self.share_bars.setOpts(x=[], height=[])
+            self.share_bars_all.setOpts(x=[], height=[])
+            self.share_table.setRowCount(0)
+            self.frame_note.setText("")
+            return
+        s, cmp = self.session, self.comparison
+        c0, r0, c1, r1 = fc.roi_px
+        # residual map over the ROI, on the (dimmed) target frame
+        tgt = normalized(s.frame(fc.target))
+        self.residual_background.setImage(0.55 * tgt, levels=(0, 1), autoLevels=False)
+        res = np.asarray(fc.residual_map, float)
+        self.residual_image.setImage(res, autoLevels=False)
+        self.residual_image.setRect(c0, r0, c1 - c0, r1 - r0)
+        self.residual_bar.setLevels((0.0, 1.0))
+        self.residual_plot.getViewBox().setRange(xRange=(c0, c1), yRange=(r0, r1), padding=0.02)
+        # the displacement field at the tracked blocks (valid ones only)
+        src = normalized(s.frame(fc.source))
+        self.vector_background.setImage(0.35 + 0.5 * src, levels=(0, 1), autoLevels=False)
+        self.roi_outline.setData([c0, c1, c1, c0, c0], [r0, r0, r1, r1, r0])
+        valid = np.asarray(fc.valid, bool)
+        pts = np.asarray(fc.points_px, float)[valid]
+        scale = self.difference_scale()
+        vecs = {"measured": (np.asarray(fc.measured_px, float)[valid], 1.0),
+                "model": (np.asarray(fc.model_px, float)[valid], 1.0),
+                "difference": (np.asarray(fc.difference_px, float)[valid], scale)}
+        for key, (v, k) in vecs.items():
+            if self.show_boxes[key].isChecked():
+                x, y = arrow_segments(pts, v, k, head_px=2.5)
+                self.vector_curves[key].setData(x, y)
+            else:
+                self.vector_curves[key].setData([], [])
+        self.vector_plot.getViewBox().setRange(xRange=(c0, c1), yRange=(r0, r1), padding=0.02)
+        # each region's share of the misfit
+        names = list(cmp.region_share)
+        xs = np.arange(len(names), dtype=float)
+        this = np.array([100 * fc.region_share.get(n, 0.0) for n in names])
+        allf = np.array([100 * cmp.region_share.get(n, 0.0) for n in names])
+        regions = s.specimen.region_names if s.specimen is not None else ()
+        brushes = [region_color(regions.index(n) if n in regions else k) for k, n in enumerate(names)]
+        self.share_bars.setOpts(x=xs - 0.2, height=this, width=0.38, brushes=brushes, pen=pg.mkPen("#333"))
+        self.share_bars_all.setOpts(x=xs + 0.2, height=allf, width=0.38, brush=pg.mkBrush(0, 0, 0, 0),
+                                    pen=pg.mkPen("#333", width=1.5, style=Qt.DashLine))
+        self.share_plot.getAxis("bottom").setTicks([[(float(x), n) for x, n in zip(xs, names)]])
+        self.share_plot.setYRange(0, 100, padding=0.02)
+        self.share_plot.setXRange(-0.7, len(names) - 0.3, padding=0)
+        self.share_table.setRowCount(len(names))
+        for k, n in enumerate(names):
+            self.share_table.setItem(k, 0, _item(n))
+            for col, v in ((1, this[k]), (2, allf[k]), (3, 100 * cmp.image_region_share.get(n, math.nan))):
+                self.share_table.setItem(k, col, _item(f"{v:.0f}%", align=Qt.AlignRight | Qt.AlignVCenter))
+        self.share_table.resizeColumnsToContents()
+        n_valid = int(valid.sum())
+        rms = float(np.sqrt(np.mean((vecs["difference"][0] ** 2).sum(1)))) if n_valid else math.nan
+        self.frame_note.setText(
+            f"Frame {fc.target} (probe travel {fc.displacement_mm:.2f} mm) against frame {fc.source}: "
+            f"{n_valid} of {len(valid)} tracked blocks kept; difference {rms:.2f} px RMS, drawn {scale:g}x longer. "
+            f"Residual map: 0 where the warped source matches the frame, 1 where they are unrelated. "
+            f"Bars: this frame (filled), all frames (dashed).")
+
+    def _show_diagnosis(self, snap) -> None:
+        d = snap.diagnosis if snap else None
+        self.diagnosis_table.setRowCount(0)
+        if d is None:
+            self.verdict_label.setText("No diagnosis yet: identify a model, then press Diagnose.")
+            self.noise_label.setText("")
+            self.diagnosis_current.setText("")
+            return
+        if d.verdict == "none":
+            self.verdict_label.setText("<b>Verdict: none</b>. No candidate effect lowers the misfit by more than "
+                                       "its parameters cost: the current model explains the data as well as the "
+                                       "noise allows.")
+        else:
+            c = d.candidate(d.verdict)
+            ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
+            self.verdict_label.setText(f"<b>Verdict: {d.verdict}</b> ({INFO[d.verdict].title}). {ev}.")
+        b = d.baseline
+        self.diagnosis_current.setText(
+            f"Diagnosed version {snap.diagnosed_version} ({', '.join(b.effects) or 'baseline'}) in {d.seconds:.0f} s: "
+            f"force misfit {b.misfit.get('force_rms_N', math.nan):.4f} N, displacement misfit "
+            f"{b.misfit.get('displacement_rms_px', math.nan):.3f} px."
+            + ("" if self.model.diagnosis_is_current() else
+               "  <span style='color:#b26a00'>The current version is another one: diagnose again to add to it."
+               "</span>"))
+        self.noise_label.setText(f"Noise model: {d.noise.describe()}.")
+        rows = diagnosis_rows(d)
+        self.diagnosis_table.setRowCount(len(rows))
+        for i, r in enumerate(rows):
+            cells = [str(r["rank"]), r["effect"], r["score_text"], r["parameters"], r["evidence"]]
+            for col, text in enumerate(cells):
+                it = _item(text, bold=r["verdict"], tip=r["title"] if col == 1 else text)
+                if col == 2:
+                    it.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
+                if r["verdict"]:
+                    it.setBackground(QBrush(QColor(VERDICT_BG)))
+                self.diagnosis_table.setItem(i, col, it)
+        self.diagnosis_table.resizeRowsToContents()
+
+    def verdict_row(self) -> int | None:
+        """The table row holding the verdict (None when the verdict is none)."""
+        for i in range(self.diagnosis_table.rowCount()):
+            it = self.diagnosis_table.item(i, 1)
+            if it is not None and it.font().bold():
+                return i
+        return None
+
+    def _show_history(self, h, cmp) -> None:
+        self.history_table.setRowCount(0)
+        for key in self.error_curves:
+            self.error_curves[key].setData([], [])
+            self.error_current[key].setData([], [])
+            self.error_noise[key].setVisible(False)
+        for box in (self.compare_a, self.compare_b):
+            box.clear()
+        if h is None or len(h) == 0:
+            self.compare_text.setPlainText("")
+            return
+        rows = history_rows(h)
+        self.history_table.setRowCount(len(rows))
+        for i, r in enumerate(rows):
+            mark = "\u25b6 " if r["current"] else ""
+            cells = [f"{mark}{r['index']}", r["label"], r["parameters"], _fmt(r["force_rms_N"], 4),
+                     _fmt(r["displacement_rms_px"], 3), _fmt(r["chi2"], 1), r["note"]]
+            for col, text in enumerate(cells):
+                it = _item(text, bold=r["current"],
+                           tip="the current version" if r["current"] and col == 0 else "")
+                if col in (3, 4, 5):
+                    it.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
+                self.history_table.setItem(i, col, it)
+        self.history_table.resizeRowsToContents()
+        errs = h.errors()
+        x = np.asarray(errs["index"], float)
+        ticks = [[(float(i), f"{i}: {lab}") for i, lab in zip(errs["index"], errs["label"])]]
+        noise = {"force_rms_N": cmp.force_noise_N if cmp is not None else None,
+                 "displacement_rms_px": cmp.noise_px if cmp is not None else None}
+        for key, curve in self.error_curves.items():
+            y = np.array([v if v is not None else np.nan for v in errs[key]], float)
+            curve.setData(x, y)
+            self.error_current[key].setData([float(h.current)], [float(y[h.current])])
+            p = self.error_plots[key]
+            p.getAxis("bottom").setTicks(ticks)
+            p.setXRange(-0.3, max(1.0, len(x) - 1) + 0.3, padding=0)
+            top = np.nanmax(y) if np.isfinite(y).any() else 1.0
+            nz = noise[key]
+            if nz is not None and math.isfinite(nz) and nz > 0:
+                self.error_noise[key].setValue(nz)
+                self.error_noise[key].setVisible(True)
+            p.setYRange(0, 1.12 * max(top, nz or 0), padding=0)
+        for box in (self.compare_a, self.compare_b):
+            for r in rows:
+                box.addItem(f"{r['index']}: {r['label']}")
+        self.compare_a.setCurrentIndex(max(0, len(rows) - 2))
+        self.compare_b.setCurrentIndex(len(rows) - 1)
+        self.compare_text.setPlainText("")
+        if len(rows) >= 2:
+            self.compare_versions()
+
+
+def _fmt(v, digits: int) -> str:
+    if v is None or not isinstance(v, (int, float)) or not math.isfinite(v):
+        return "-"
+    return f"{v:.{digits}f}"
+

@@ -1,0 +1,239 @@
+"""Model check panel on a small synthetic experiment with a hidden viscoelastic effect
+(a ramp, a hold and an unloading): identify, compare, diagnose, add the verdict,
+revert; cancel; a responsive window during the diagnosis. And the Qt-free helpers."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from conftest import TEST_MESH, wait_task_done
+from PySide6.QtCore import QElapsedTimer, Qt, QTimer
+
+from app.core.experiment import read_experiment
+
+FAST_CANDIDATES = ("viscoelastic", "probe-slip")
+
+
+def _prepare(win, experiment):
+    win.open_experiment(experiment)
+    s = win.session
+    s.set_mesh_settings(replace(s.effective_mesh_settings(), **TEST_MESH))
+    win.raise_panel("modelcheck")
+    return win.modelcheck_panel
+
+
+def _click_and_wait(qtbot, panel, button, timeout_s: float = 180.0):
+    assert button.isEnabled(), panel.state.text()
+    qtbot.mouseClick(button, Qt.LeftButton)
+    assert panel.running
+    wait_task_done(qtbot, panel, timeout_s)
+
+
+class _Lateness:
+    """How late a 10 ms timer fires on the GUI thread (the identification test's pattern)."""
+
+    def __init__(self):
+        self.ms: list[float] = []
+        self.clock = QElapsedTimer()
+        self.timer = QTimer()
+        self.timer.setInterval(10)
+        self.last = None
+        self.timer.timeout.connect(self._tick)
+
+    def _tick(self):
+        now = self.clock.nsecsElapsed() / 1e6
+        if self.last is not None:
+            self.ms.append(max(0.0, now - self.last - 10.0))
+        self.last = now
+
+    def start(self):
+        self.clock.start()
+        self.timer.start()
+
+    def stop(self) -> np.ndarray:
+        self.timer.stop()
+        return np.asarray(self.ms)
+
+
+def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment, qtbot, record_property):
+    win = make_window()
+    panel = win.modelcheck_panel
+    assert not panel.identify_button.isEnabled() and not panel.diagnose_button.isEnabled()  # no experiment yet
+    panel = _prepare(win, visco_experiment)
+    exp = read_experiment(visco_experiment)
+    assert win.docks["modelcheck"].isVisible()
+    assert panel.identify_button.isEnabled() and not panel.diagnose_button.isEnabled()
+    assert not panel.identify_boxes["inclusion"].isEnabled()  # an inclusion comes from a diagnosis
+
+    # identify the baseline
+    _click_and_wait(qtbot, panel, panel.identify_button)
+    assert not win.error_boxes, [b.informativeText() for b in win.error_boxes]
+    h = panel.model.history
+    assert len(h) == 1 and h.current == 0 and h.versions[0].effects == ()
+    assert "version 0" in panel.version_label.text() and "baseline" in panel.version_label.text()
+
+    # compare: the force over the whole log (loading, hold, unloading), measured and model
+    log = exp.force_log
+    d = np.asarray(log.displacement_mm)
+    assert d.argmax() < len(d) - 10 and d[-1] < 0.2 * d.max()  # the log unloads after the hold
+    for key in ("time", "travel"):
+        for curve in panel.force_curves[key]:
+            x, y = curve.getData()
+            assert len(y) == len(log) and np.isfinite(x).all() and np.isfinite(y).all()
+    t, f_model = panel.force_curves["time"][1].getData()
+    assert t[-1] == pytest.approx(log.time_s[-1]) and f_model.max() > 0
+    assert "force misfit" in panel.compare_summary.text()
+    # per frame: the residual map over the ROI, the vector map, the regions' shares
+    assert panel.frame_box.count() == len(exp.frames) - 1
+    for k in range(panel.frame_box.count()):
+        panel.frame_box.setCurrentIndex(k)
+        fc = panel.current_frame()
+        assert fc.target == k + 1
+        c0, r0, c1, r1 = fc.roi_px
+        res = np.asarray(panel.residual_image.image)
+        assert res.shape == (r1 - r0, c1 - c0)
+        finite = res[np.isfinite(res)]
+        assert finite.size > 0.5 * res.size and 0.0 <= finite.min() and finite.max() <= 2.0 and finite.std() > 0
+        n_valid = int(np.sum(fc.valid))
+        assert n_valid >= 5
+        for key in ("measured", "model", "difference"):
+            x, y = panel.vector_curves[key].getData()
+            assert len(x) == 6 * n_valid and np.isfinite(x).all() and np.isfinite(y).all()  # shaft + head, per block
+            assert c0 - 40 <= x.min() and x.max() <= c1 + 40
+        mx, _ = panel.vector_curves["measured"].getData()
+        assert not np.allclose(mx[1::6] - mx[0::6], 0)  # the tissue moved
+        shares = [float(panel.share_table.item(i, 1).text().rstrip("%")) for i in range(panel.share_table.rowCount())]
+        assert [panel.share_table.item(i, 0).text() for i in range(panel.share_table.rowCount())] == ["B", "A"]
+        assert sum(shares) == pytest.approx(100, abs=2)
+    panel.show_boxes["difference"].setChecked(False)
+    hidden = panel.vector_curves["difference"].getData()[0]
+    assert hidden is None or len(hidden) == 0
+    panel.show_boxes["difference"].setChecked(True)
+
+    # diagnose (two candidates, to stay quick) while timing the event loop
+    for e, cb in panel.candidate_boxes.items():
+        cb.setChecked(e in FAST_CANDIDATES)
+    assert panel.chosen_candidates() == FAST_CANDIDATES
+    late = _Lateness()
+    late.start()
+    _click_and_wait(qtbot, panel, panel.diagnose_button)
+    lat = late.stop()
+    assert not win.error_boxes, [b.informativeText() for b in win.error_boxes]
+    p95, worst = float(np.percentile(lat, 95)), float(lat.max())
+    record_property("modelcheck_diagnose_lateness_p95_ms", round(p95, 2))
+    print(f"\nevent-loop lateness during the diagnosis over {len(lat)} ticks: p95 {p95:.1f} ms, max {worst:.1f} ms")
+    assert len(lat) > 50 and p95 <= 50.0
+    row = panel.verdict_row()
+    assert row == 0 and panel.diagnosis_table.rowCount() == 2
+    assert panel.diagnosis_table.item(row, 1).text() == "viscoelastic"
+    assert float(panel.diagnosis_table.item(row, 2).text()) > 0
+    assert "g1" in panel.diagnosis_table.item(row, 3).text()
+    assert "relaxes" in panel.diagnosis_table.item(row, 4).text()
+    assert "Verdict: viscoelastic" in panel.verdict_label.text()
+    assert "Gaussian" in panel.noise_label.text() and "tracked blocks" in panel.noise_label.text()
+    assert panel.tabs.currentIndex() == 1
+    assert panel.add_verdict_button.isEnabled() and "viscoelastic" in panel.add_verdict_button.text()
+    panel.diagnosis_table.selectRow(1)
+    assert panel.add_selected_button.isEnabled() and "probe-slip" in panel.add_selected_button.text()
+
+    # add the verdict: a second version, and the error falls
+    _click_and_wait(qtbot, panel, panel.add_verdict_button)
+    assert not win.error_boxes, [b.informativeText() for b in win.error_boxes]
+    h = panel.model.history
+    assert len(h) == 2 and h.current == 1 and h.versions[1].effects == ("viscoelastic",)
+    assert panel.history_table.rowCount() == 2 and panel.history_table.item(1, 0).text().startswith("\u25b6")
+    assert panel.history_table.item(1, 1).text() == "+ viscoelastic"
+    xs, ys = panel.error_curves["force_rms_N"].getData()
+    assert list(xs) == [0, 1] and ys[1] < ys[0] / 3
+    assert not panel.add_verdict_button.isEnabled()  # the diagnosis was for version 0
+    assert "added: viscoelastic" in panel.compare_text.toPlainText()
+    assert panel.identify_boxes["viscoelastic"].isChecked()  # the current model's effects
+    assert not panel.candidate_boxes["viscoelastic"].isEnabled()
+    t, f1 = panel.force_curves["time"][1].getData()
+    assert np.sqrt(np.mean((f1 - log.force_N) ** 2)) == pytest.approx(h.versions[1].misfit["force_rms_N"], rel=1e-6)
+    # compare two versions as text
+    panel.compare_a.setCurrentIndex(1)
+    panel.compare_b.setCurrentIndex(0)
+    qtbot.mouseClick(panel.compare_button, Qt.LeftButton)
+    assert "removed: viscoelastic" in panel.compare_text.toPlainText()
+
+    # revert to the baseline (version 1 is kept)
+    panel.history_table.selectRow(0)
+    _click_and_wait(qtbot, panel, panel.revert_button, 60)
+    h = panel.model.history
+    assert h.current == 0 and len(h) == 2
+    assert panel.history_table.item(0, 0).text().startswith("\u25b6")
+    assert "version 0" in panel.version_label.text()
+    assert not panel.identify_boxes["viscoelastic"].isChecked()
+    t, f0 = panel.force_curves["time"][1].getData()
+    assert np.sqrt(np.mean((f0 - log.force_N) ** 2)) == pytest.approx(h.versions[0].misfit["force_rms_N"], rel=1e-6)
+    assert not win.error_boxes
+    text = win.log_panel.text.toPlainText()
+    assert "model check: tracking speckle" in text and "model check: added viscoelastic" in text
+    assert win.session.locked_by is None
+
+
+def test_cancel_an_identification(window, visco_experiment, qtbot):
+    panel = _prepare(window, visco_experiment)
+    qtbot.mouseClick(panel.identify_button, Qt.LeftButton)
+    assert panel.running and panel.cancel_button.isEnabled() and not panel.identify_button.isEnabled()
+    assert window.session.locked_by  # the ROI and specimen are read-only meanwhile
+    assert not window.identification_panel.run_button.isEnabled()  # one computation on the inputs at a time
+    assert "model check is running" in window.identification_panel.settings_note.text()
+    lines: list[str] = []
+    panel.task.progress.connect(lines.append)
+    # cancel while the model is being built (before the optimizer starts)
+    qtbot.waitUntil(lambda: any("training" in x for x in lines), timeout=60_000)
+    clock = QElapsedTimer()
+    clock.start()
+    qtbot.mouseClick(panel.cancel_button, Qt.LeftButton)
+    wait_task_done(qtbot, panel, 60)
+    assert clock.elapsed() < 20_000
+    assert "Cancelled" in panel.state.text()
+    assert panel.model.n_versions == 0 and panel.model.check is None
+    assert panel.identify_button.isEnabled() and not panel.cancel_button.isEnabled()
+    assert window.session.locked_by is None and window.identification_panel.run_button.isEnabled()
+    assert not window.error_boxes, [b.informativeText() for b in window.error_boxes]
+
+
+def test_core_errors_reach_the_user(window, noise_experiment):
+    """A step the core refuses shows the core's message (app.gui.errors.show_error)."""
+    panel = _prepare(window, noise_experiment)
+    panel.add("viscoelastic")  # no diagnosis yet
+    assert not panel.running
+    assert "identify a model first" in window.error_boxes[-1].informativeText()
+
+
+# ---------------------------------------------------------------------------
+# the Qt-free helpers
+# ---------------------------------------------------------------------------
+
+
+def test_arrows_and_difference_scale():
+    from types import SimpleNamespace
+
+    from app.gui.models.modelcheck import arrow_segments, auto_difference_scale
+
+    x, y = arrow_segments(np.array([[10.0, 20.0], [0.0, 0.0]]), np.array([[3.0, 4.0], [np.nan, 1.0]]), 2.0)
+    assert len(x) == 6  # the NaN vector is dropped
+    assert (x[0], y[0], x[1], y[1]) == (10.0, 20.0, 16.0, 28.0)
+    assert x[3] != x[2] and x[5] != x[2]  # two head strokes
+    fc = SimpleNamespace(difference_px=np.array([[0.1, 0.0], [0.0, 0.2], [5.0, 5.0]]), valid=np.array([1, 1, 0], bool))
+    assert auto_difference_scale(fc, 10.0) == 50.0
+
+
+def test_history_text_and_rows():
+    from app.core.diagnose import ModelHistory
+    from app.gui.models.modelcheck import compare_text, history_rows, parameters_text
+
+    h = ModelHistory().with_version((), {"E_B_kPa": 10.0, "E_A_kPa": 30.0}, {"nmi": 1.05},
+                                    {"force_rms_N": 0.3, "displacement_rms_px": 1.0, "chi2": 900.0})
+    h = h.with_version(("viscoelastic",), {"E_B_kPa": 12.0, "E_A_kPa": 36.0, "g1": 0.3, "tau1_s": 2.0},
+                       {"nmi": 1.05}, {"force_rms_N": 0.03, "displacement_rms_px": 1.0, "chi2": 90.0})
+    rows = history_rows(h)
+    assert [r["label"] for r in rows] == ["baseline", "+ viscoelastic"] and rows[1]["current"]
+    assert parameters_text(h.versions[1].parameters) == "B 12.00, A 36.00 kPa; g1 0.3, tau1_s 2.00"
+    text = compare_text(h, 0, 1)
+    assert "added: viscoelastic; removed: nothing" in text and "x0.1" in text and "+20.0%" in text
