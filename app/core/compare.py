@@ -12,7 +12,10 @@ at the positions the model says each source pixel moved to (unwarping the
 model's deformation, so the blocks compare near-rigidly even at large strain),
 and the small remaining shift of each block is the peak of the normalized
 cross-correlation (:func:`skimage.feature.match_template`) over a +-4 px
-search, refined to sub-pixel by a parabola per axis. The measured
+search, refined to sub-pixel by a parabola per axis; the target is then
+resampled at the shifted positions and matched again until the remaining shift
+vanishes (a parabola alone is biased toward whole pixels, which would pull the
+measurement toward the model it started from). The measured
 displacement is the model's plus that shift, so it does not depend on the model
 to first order. Blocks tile the ROI without overlap, so their errors are
 independent; the tracking noise is estimated from the blocks themselves (the
@@ -103,6 +106,10 @@ def robust_noise(values: np.ndarray, grid: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
 
 
+REFINE_ITERATIONS = 5  # sub-pixel refinement rounds of each block (see track)
+SOURCE_ORDER = 3  # spline order sampling the source block (linear at half pixels would blur it)
+
+
 def track(problem, params: dict, block_px: int | None = None, min_quality: float = 0.3) -> TrackedField:
     """Model-assisted speckle tracking of every frame pair of ``problem`` with the
     model at ``params`` (see the module docstring)."""
@@ -132,20 +139,31 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
         for (cc, rr) in centres:
             pr = rr + offs[:, None] + 0 * offs[None, :]
             pc = cc + 0 * offs[:, None] + offs[None, :]
-            S = map_coordinates(src, [pr, pc], order=1, mode="nearest")
+            S = map_coordinates(src, [pr, pc], order=SOURCE_ORDER, mode="nearest")
             # the target, sampled where the model moved each source pixel (the block plus a margin)
             br = rr + offs_big[:, None] + 0 * offs_big[None, :]
             bc = cc + 0 * offs_big[:, None] + offs_big[None, :]
             dc = map_coordinates(coarse[..., 0], [br / step, bc / step], order=1, mode="nearest")
             dr = map_coordinates(coarse[..., 1], [br / step, bc / step], order=1, mode="nearest")
             qr, qc = br + dr, bc + dc
-            inside = (qr.min() >= 1) and (qr.max() <= H - 2) and (qc.min() >= 1) and (qc.max() <= W - 2)
-            U = map_coordinates(tgt, [qr, qc], order=3, mode="nearest")
             mdc = float(map_coordinates(coarse[..., 0], [[rr / step], [cc / step]], order=1)[0])
             mdr = float(map_coordinates(coarse[..., 1], [[rr / step], [cc / step]], order=1)[0])
-            t, ncc = _block_match(S, U)
-            # U(p) = T(p + delta_model(p)) holds the source block moved by t = delta_true - delta_model
-            meas.append([mdc + t[1], mdr + t[0]])
+            # U(p) = T(p + delta_model(p) + t_acc) holds the source block moved by
+            # t = delta_true - delta_model - t_acc. A parabola through the correlation
+            # peak is biased toward whole pixels (peak locking), and with model-assisted
+            # sampling that pulls the measurement toward the model. Iterating until the
+            # remaining shift is nil removes the bias: at zero shift it is zero.
+            t_acc = np.zeros(2)
+            for _ in range(REFINE_ITERATIONS):
+                U = map_coordinates(tgt, [qr + t_acc[0], qc + t_acc[1]], order=3, mode="nearest")
+                t, ncc = _block_match(S, U)
+                t_acc = t_acc + t
+                if np.abs(t).max() < 0.01 or np.abs(t_acc).max() > mrg:
+                    break
+            qr_f, qc_f = qr + t_acc[0], qc + t_acc[1]
+            inside = (qr_f.min() >= 1) and (qr_f.max() <= H - 2) and (qc_f.min() >= 1) and (qc_f.max() <= W - 2)
+            inside = inside and np.abs(t_acc).max() <= mrg
+            meas.append([mdc + t_acc[1], mdr + t_acc[0]])
             model.append([mdc, mdr])
             qual.append(ncc)
             valid.append(inside and ncc >= min_quality)

@@ -69,18 +69,25 @@ class NoiseModel:
                 f"Huber loss beyond {self.huber:g} sigma")
 
 
-def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> np.ndarray:
+def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The smooth part of a block residual field: the median over each block's 3 x 3
     neighbourhood (valid blocks), which keeps a systematic misfit and suppresses
-    the independent tracking noise (and its outliers)."""
+    the independent tracking noise (and its outliers). Returns the (n, 2) medians
+    and the number of blocks each was taken over."""
     lut = {tuple(g): i for i, g in enumerate(grid) if valid[i]}
-    out = []
+    out, counts = [], []
     for i, (r, cc) in enumerate(grid):
         if not valid[i]:
             continue
         nb = [lut[(r + dr, cc + dc)] for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (r + dr, cc + dc) in lut]
         out.append(np.median(residual[nb], axis=0))
-    return np.asarray(out).reshape(-1, 2)
+        counts.append(len(nb))
+    return np.asarray(out).reshape(-1, 2), np.asarray(counts, float)
+
+
+def excess(rms: float, floor: float) -> float:
+    """The part of an RMS misfit the noise cannot explain: sqrt(max(rms^2 - floor^2, 0))."""
+    return float(np.sqrt(max(rms * rms - floor * floor, 0.0)))
 
 
 class Likelihood:
@@ -108,20 +115,28 @@ class Likelihood:
         rF = (P.model_force_N(params, a) - P.log_F) / self.noise.force_sigma_N
         chi_F = float(rF @ rF)
         c = self.noise.huber
-        chi_u, sq, n, sys_sq, sys_n = 0.0, 0.0, 0, 0.0, 0
+        chi_u, sq, n, sys_sq, sys_n, floor_sq = 0.0, 0.0, 0, 0.0, 0, 0.0
         for tp, m in zip(self.tracked.pairs, self.model_px(params, a)):
             r = (tp.measured_px - m)[tp.valid]
             sq += float((r**2).sum())
             n += r.shape[0]
             z = np.abs(r) / self.noise.displacement_sigma_px
             chi_u += float(np.where(z <= c, z * z, 2 * c * z - c * c).sum())
-            s = _systematic(tp.measured_px - m, tp.valid, tp.grid_index)
+            s, k = _systematic(tp.measured_px - m, tp.valid, tp.grid_index)
             sys_sq += float((s**2).sum())
             sys_n += len(s)
+            # what the noise alone leaves in those medians: a median of k independent
+            # Gaussian values has variance about (pi / 2) sigma^2 / k, per component
+            floor_sq += float((2 * (math.pi / 2) * self.noise.displacement_sigma_px**2 / np.maximum(k, 1)).sum())
         return {"total": chi_F + chi_u, "force": chi_F, "images": chi_u,
                 "force_rms_N": float(np.sqrt(np.mean((rF * self.noise.force_sigma_N) ** 2))),
                 "displacement_rms_px": float(np.sqrt(sq / max(n, 1))),
-                "displacement_systematic_px": float(np.sqrt(sys_sq / max(sys_n, 1)))}
+                "displacement_systematic_px": float(np.sqrt(sys_sq / max(sys_n, 1))),
+                # the model errors: the misfits beyond what the stated noise explains
+                "force_excess_N": excess(float(np.sqrt(np.mean((rF * self.noise.force_sigma_N) ** 2))),
+                                         self.noise.force_sigma_N),
+                "displacement_excess_px": excess(float(np.sqrt(sys_sq / max(sys_n, 1))),
+                                                 float(np.sqrt(floor_sq / max(sys_n, 1))))}
 
     def __call__(self, params: dict) -> float:
         return self.parts(params)["total"]
@@ -206,6 +221,7 @@ def _misfit(lik: Likelihood, params: dict) -> dict:
     return {"chi2": p["total"], "chi2_force": p["force"], "chi2_images": p["images"],
             "force_rms_N": p["force_rms_N"], "displacement_rms_px": p["displacement_rms_px"],
             "displacement_systematic_px": p["displacement_systematic_px"],
+            "force_excess_N": p["force_excess_N"], "displacement_excess_px": p["displacement_excess_px"],
             "n_force": lik.noise.n_force, "n_images": lik.noise.n_displacement}
 
 
@@ -215,6 +231,16 @@ def _fit_ml(problem: EffectProblem, lik: Likelihood, start: dict, cancel, max_ev
     if "hyperelastic" in problem.effects:
         return fit_hyperelastic(problem, start, progress_text=progress_text, **kw)
     return fit(problem, start, **kw)
+
+
+def noise_model(problem: EffectProblem, tracked: TrackedField) -> NoiseModel:
+    """The stated noise model: force noise from the log (a floor of 1e-3 of the
+    largest force when the log is too short or noiseless), tracking noise from
+    the blocks."""
+    sigma_F = problem.force_sigma_N
+    if not np.isfinite(sigma_F) or sigma_F <= 0:
+        sigma_F = max(1e-3 * problem.force_scale_N, 1e-6)
+    return NoiseModel(float(sigma_F), len(problem.log_F), tracked.noise_px, 2 * tracked.n_valid)
 
 
 def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=None, progress=None, cancel=None,
@@ -233,7 +259,8 @@ def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=N
 
 def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None = None, start: dict | None = None,
              mesh_settings=None, inclusion: dict | None = None, max_evaluations: int = 200,
-             progress: Callable[[str], None] | None = None, cancel: threading.Event | None = None) -> Diagnosis:
+             tracked: TrackedField | None = None, progress: Callable[[str], None] | None = None,
+             cancel: threading.Event | None = None) -> Diagnosis:
     """Try each candidate effect on top of the model with ``effects`` (and, if one
     was added before, ``inclusion``) and rank them.
 
@@ -256,12 +283,10 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     start = problem.complete(start)
     if "hyperelastic" in problem.effects and problem._hyper is None:
         problem.refresh_hyperelastic(start, cancel=cancel)
-    say("tracking speckle between frames")
-    tracked = track(problem, start)
-    sigma_F = problem.force_sigma_N
-    if not np.isfinite(sigma_F) or sigma_F <= 0:
-        sigma_F = max(1e-3 * problem.force_scale_N, 1e-6)
-    noise = NoiseModel(float(sigma_F), len(problem.log_F), tracked.noise_px, 2 * tracked.n_valid)
+    if tracked is None:
+        say("tracking speckle between frames")
+        tracked = track(problem, start)
+    noise = noise_model(problem, tracked)
     lnN = math.log(noise.n)
 
     say("refitting the current model (maximum likelihood)")
@@ -453,6 +478,8 @@ class ModelHistory:
                 "force_rms_N": [v.misfit.get("force_rms_N") for v in self.versions],
                 "displacement_rms_px": [v.misfit.get("displacement_rms_px") for v in self.versions],
                 "displacement_systematic_px": [v.misfit.get("displacement_systematic_px") for v in self.versions],
+                "force_excess_N": [v.misfit.get("force_excess_N") for v in self.versions],
+                "displacement_excess_px": [v.misfit.get("displacement_excess_px") for v in self.versions],
                 "chi2": [v.misfit.get("chi2") for v in self.versions],
                 "nmi": [v.cost.get("nmi") for v in self.versions]}
 
@@ -461,7 +488,8 @@ class ModelHistory:
         a, b = self.versions[i], self.versions[j]
         params = {k: (a.parameters.get(k), b.parameters.get(k)) for k in sorted(set(a.parameters) | set(b.parameters))}
         err = {}
-        for k in ("force_rms_N", "displacement_rms_px", "displacement_systematic_px", "chi2"):
+        for k in ("force_rms_N", "displacement_rms_px", "displacement_systematic_px", "force_excess_N",
+                  "displacement_excess_px", "chi2"):
             x, y = a.misfit.get(k), b.misfit.get(k)
             err[k] = (x, y, (y / x) if x else None)
         return {"added": [e for e in b.effects if e not in a.effects],
@@ -508,8 +536,7 @@ class ModelCheck:
         return self._add_version(problem, res.parameters, res.cost, note or "identified", inclusion)
 
     def _add_version(self, problem, params, cost, note, inclusion) -> ModelVersion:
-        noise = NoiseModel(problem.force_sigma_N, len(problem.log_F), self.tracked.noise_px, 2 * self.tracked.n_valid)
-        mis = _misfit(Likelihood(problem, self.tracked, noise), params)
+        mis = _misfit(Likelihood(problem, self.tracked, noise_model(problem, self.tracked)), params)
         self.history = self.history.with_version(problem.effects, params, cost, mis, note, inclusion)
         self.problem = problem
         self._problems[self.history.current] = problem
@@ -524,9 +551,10 @@ class ModelCheck:
         v = self.history.current_version
         if v is None:
             raise ElastoidError("identify a model first")
+        # the same tracked field as the versions' misfits, so the numbers agree
         self.last_diagnosis = diagnose(self.exp, effects=v.effects, candidates=candidates, problem=self.problem,
                                        start=v.parameters, mesh_settings=self.mesh_settings, inclusion=v.inclusion,
-                                       progress=progress, cancel=cancel)
+                                       tracked=self.tracked, progress=progress, cancel=cancel)
         return self.last_diagnosis
 
     def add(self, effect: str | None = None) -> ModelVersion:
