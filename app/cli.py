@@ -204,8 +204,22 @@ def cmd_simulate(args) -> int:
             regions.append(Region("A", "box", center_mm=tuple(vals[:3]), size_mm=tuple(vals[3:])))
         else:
             raise ElastoidError("--inclusion: expected sphere:cx,cy,cz,r or box:cx,cy,cz,sx,sy,sz or none")
+    hidden = []
+    if args.hidden:
+        kind, _, nums = args.hidden.partition(":")
+        vals = _floats(nums, what="--hidden")
+        if kind != "sphere" or len(vals) != 5:
+            raise ElastoidError("--hidden: expected sphere:cx,cy,cz,r,E_kPa")
+        hidden.append(Region("H", "sphere", center_mm=tuple(vals[:3]), radius_mm=vals[3]))
+    effects = tuple(e for e in args.effects.split(",") if e)
+    if "inclusion" in effects and not hidden:
+        raise ElastoidError("--effects inclusion: give the undescribed region with --hidden sphere:cx,cy,cz,r,E_kPa")
+    if hidden and "inclusion" not in effects:
+        effects = effects + ("inclusion",)
     names = [r.name for r in regions]
     moduli = {k: v for k, v in moduli.items() if k in names}
+    if hidden:
+        moduli["H"] = vals[4]
     missing = [n for n in names if n not in moduli]
     if missing:
         raise ElastoidError(f"--moduli: no modulus for region(s) {', '.join(missing)}")
@@ -215,7 +229,7 @@ def cmd_simulate(args) -> int:
                          force_noise_N=args.noise_N, seed=args.seed, hold_s=args.hold_s, unload=args.unload,
                          image_shape=(args.rows, args.cols),
                          truth_mesh_scale=args.truth_mesh_scale,
-                         effects=tuple(e for e in args.effects.split(",") if e), g1=args.g1, tau1_s=args.tau1_s,
+                         effects=effects, hidden_regions=tuple(hidden), g1=args.g1, tau1_s=args.tau1_s,
                          nu=args.nu)
     say = (lambda s: print(s, file=sys.stderr)) if not args.quiet else None
     out = simulate_experiment(args.output, spec, progress=say, overwrite=args.overwrite)
@@ -283,6 +297,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--truth-mesh-scale", type=float, default=0.7,
                     help="truth mesh size relative to the automatic identification mesh (< 1: finer)")
     sp.add_argument("--effects", default="", help="physical effects in the truth (ids, comma-separated)")
+    sp.add_argument("--hidden", default="", metavar="sphere:cx,cy,cz,r,E_kPa",
+                    help="an inclusion in the truth that experiment.toml does not describe (the inclusion effect)")
     sp.add_argument("--g1", type=float, default=0.3, help="viscoelastic truth: relaxing fraction")
     sp.add_argument("--tau1-s", type=float, default=2.0, help="viscoelastic truth: relaxation time, s")
     sp.add_argument("--nu", type=float, default=0.49, help="Poisson's ratio of the truth")

@@ -55,3 +55,25 @@ def test_bad_experiment_gives_a_message_naming_file_and_field(tmp_path, capsys):
 def test_unknown_or_unavailable_effect_is_refused(capsys):
     assert main(["identify", str(ROOT / "resources" / "demo"), "--effects", "magic"]) == 2
     assert "unknown effect 'magic'" in capsys.readouterr().err
+
+
+def test_simulate_inclusion_needs_the_hidden_region(tmp_path, capsys):
+    assert main(["simulate", str(tmp_path / "x"), "--effects", "inclusion", "--quiet"]) == 2
+    assert "--hidden" in capsys.readouterr().err
+    assert main(["simulate", str(tmp_path / "y"), "--hidden", "box:1,2,3", "--quiet"]) == 2
+    assert "--hidden: expected sphere" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_simulate_a_hidden_inclusion(tmp_path):
+    from app.core.experiment import read_experiment
+    from app.core.simulate import read_truth
+
+    out = tmp_path / "exp"
+    assert main(["simulate", str(out), "--size-mm", "40,40,30", "--inclusion", "sphere:20,20,18,7",
+                 "--moduli", "B=15,A=45", "--face-mm", "24,8", "--depth-mm", "3", "--frames-at", "0,3",
+                 "--rows", "96", "--cols", "96", "--hidden", "sphere:28,20,12,3,60", "--quiet"]) == 0
+    truth = read_truth(out)
+    assert truth["effects"] == ["inclusion"] and truth["moduli_kPa"]["H"] == 60.0
+    assert truth["hidden_regions"][0]["center_mm"] == [28.0, 20.0, 12.0]
+    assert read_experiment(out).specimen.region_names == ("B", "A")  # the experiment does not describe it

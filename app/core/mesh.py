@@ -371,13 +371,16 @@ def _orient_and_clean(V: np.ndarray, T: np.ndarray):
 
 def auto_settings(size_mm, probe_rect_mm, regions: tuple[Region, ...]) -> MeshSettings:
     """Edge lengths that resolve the specimen's features: at most 10 mm, an eighth of
-    the smallest box side, and a third of the thinnest region; a fifth of the
-    probe face's short side (at most 2.5 mm) on the probe; inside and around each
-    region a fifth of its thinnest extent (see :func:`region_edge_mm`)."""
+    the smallest box side, and a third of the thinnest region, but no less than a
+    tenth of the smallest side (a small region is resolved by the local
+    refinement around it, not by refining the whole specimen: a 3 mm sphere
+    otherwise made a million unknowns); a fifth of the probe face's short side
+    (at most 2.5 mm) on the probe; inside and around each region a fifth of its
+    thinnest extent (see :func:`region_edge_mm`)."""
     edge = min(10.0, min(size_mm) / 8.0)
     for r in regions[1:]:
         lo, hi = r.bounds_mm()
-        edge = min(edge, float(np.min(hi - lo)) / 3.0)
+        edge = min(edge, max(float(np.min(hi - lo)) / 3.0, min(size_mm) / 10.0))
     x0, x1, y0, y1 = probe_rect_mm
     probe = min(2.5, min(x1 - x0, y1 - y0) / 5.0, edge)
     return MeshSettings(edge_mm=round(edge, 3), probe_edge_mm=round(probe, 3))

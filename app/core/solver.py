@@ -32,7 +32,13 @@ class Factorized:
             self._U = sp.triu(A, format="csr")
             self._U.sort_indices()
             self._s = pypardiso.PyPardisoSolver(mtype=2)
-            self._s.factorize(self._U)
+            try:
+                self._s.factorize(self._U)
+            except pypardiso.pardiso_wrapper.PyPardisoError as exc:
+                from app.core.errors import ElastoidError
+
+                raise ElastoidError(f"the sparse solver failed on {A.shape[0]:,} unknowns ({exc}); error -2 means "
+                                    "not enough memory: use a coarser mesh") from None
         else:
             self._lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
 
