@@ -171,7 +171,7 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     assert np.sqrt(np.mean((f0 - log.force_N) ** 2)) == pytest.approx(h.versions[0].misfit["force_rms_N"], rel=1e-6)
     assert not win.error_boxes
     text = win.log_panel.text.toPlainText()
-    assert "model check: tracking speckle" in text and "model check: added viscoelastic" in text
+    assert "model check: trying viscoelastic" in text and "model check: added viscoelastic" in text
     assert win.session.locked_by is None
 
 
