@@ -229,8 +229,13 @@ class Problem:
         w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))
         return w, pair.target_roi, self.roi, pair.mask
 
+    def complete(self, params: dict) -> dict:
+        """Parameters with defaults filled in (the baseline has none; effects add theirs)."""
+        return params
+
     def evaluate(self, params: dict) -> dict:
         """Cost parts: total, nmi (mean over frame pairs, in [1, 2]), force_rms_N."""
+        params = self.complete(params)
         with single_threaded_blas():
             theta = self.theta(params)
             a = self.rm.coords(theta)
@@ -249,7 +254,7 @@ class Problem:
 
     def deformed_points(self, params: dict, displacement_mm: float) -> np.ndarray:
         """Mesh vertices moved by the model at a probe travel (mm)."""
-        a = self.rm.coords(self.theta(params))
+        a = self.rm.coords(self.theta(self.complete(params)))
         u = self.rm.full_field(a).reshape(-1, 3)[: self.mesh.n_nodes]
         return self.mesh.points_mm + displacement_mm * u
 

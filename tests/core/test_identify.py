@@ -99,6 +99,5 @@ def test_the_papers_hard_binned_cost_equals_skimage(case):
         w, target, _, mask = hard.warped_source(p, pair.target)
         expected.append(sk_nmi(target[mask], w[mask], bins=hard.bins))
     assert hard.evaluate(p)["nmi"] == pytest.approx(np.mean(expected), abs=1e-9)
-    # the smooth estimator of the default cost is close to it and in the same range
-    assert 1.0 < joint.evaluate(p)["nmi"] < 2.0
+    # the smooth estimator of the default cost is close to it
     assert joint.evaluate(p)["nmi"] == pytest.approx(np.mean(expected), rel=0.05)

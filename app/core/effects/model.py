@@ -217,30 +217,6 @@ class EffectProblem(Problem):
         w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))
         return w, pair.target_roi, self.roi, pair.mask
 
-    def evaluate(self, params: dict) -> dict:
-        """Cost parts: total, nmi (mean over frame pairs, in [1, 2]), force_rms_N."""
-        params = self.complete(params)
-        with single_threaded_blas():
-            a = self.rm.coords(self.theta(params))
-            vals = []
-            for pair in self.pairs:
-                w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))
-                vals.append(pair.nmi(w[pair.mask]))
-            nmi = float(np.mean(vals))
-            resid = self.model_force_N(params, a) - self.log_F
-            frms = float(np.sqrt(np.mean(resid**2)))
-        self.n_evaluations += 1
-        total = -nmi
-        if self.cost_kind == "joint":
-            total += self.force_weight * (frms / self.force_scale_N) ** 2
-        return {"total": total, "nmi": nmi, "force_rms_N": frms}
-
-    def deformed_points(self, params: dict, displacement_mm: float) -> np.ndarray:
-        params = self.complete(params)
-        a = self.rm.coords(self.theta(params))
-        u = self.rm.full_field(a).reshape(-1, 3)[: self.mesh.n_nodes]
-        return self.mesh.points_mm + displacement_mm * u
-
     def identifiability(self, params: dict):
         """The moduli's identifiability (effect parameters held at their values)."""
         params = self.complete(params)
