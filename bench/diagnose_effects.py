@@ -1,0 +1,47 @@
+"""Diagnose a small synthetic phantom with one hidden effect; print the ranking, the moduli
+errors and how much each candidate lowers each misfit.
+
+    python bench/diagnose_effects.py EFFECT SEED [candidates]   (EFFECT: an effect id or none)
+"""
+import os, sys, tempfile, time
+from pathlib import Path
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
+if __name__ == "__main__":
+    eff, seed = sys.argv[1], int(sys.argv[2])
+    cands = tuple(sys.argv[3].split(",")) if len(sys.argv) > 3 and sys.argv[3] else None
+    pass
+    from app.core.diagnose import diagnose
+    from app.core.experiment import read_experiment
+    from app.core.geometry import Region
+    from app.core.mesh import MeshSettings
+    from app.core.simulate import SyntheticSpec, simulate_experiment
+    ID_MESH = MeshSettings(edge_mm=6.0, probe_edge_mm=2.5, region_edge_mm=2.5)
+    BASE = dict(size_mm=(40.0, 40.0, 30.0),
+                regions=(Region("B", "background"), Region("A", "sphere", center_mm=(20.0, 20.0, 18.0), radius_mm=7.0)),
+                moduli_kPa={"B": 15.0, "A": 45.0}, face_mm=(24.0, 8.0), depth_mm=5.0, frames_at_mm=(0.0, 2.5, 5.0),
+                image_shape=(128, 120), truth_mesh=ID_MESH.with_scale(0.7))
+    kw = {}
+    if eff == "compressibility": kw = dict(nu=0.3)
+    elif eff == "hyperelastic": kw = dict(effects=("hyperelastic",), depth_mm=7.5, frames_at_mm=(0.0, 3.75, 7.5))
+    elif eff == "inclusion":
+        kw = dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),), moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})
+    elif eff != "none": kw = dict(effects=(eff,))
+    folder = Path(tempfile.gettempdir()) / f"elastoid-bench-{eff}-{seed}"
+    mesh_scale = float(os.environ.get("IDSCALE", "1"))
+    ID_MESH = ID_MESH.with_scale(mesh_scale)
+    if not (folder / "experiment.toml").exists():
+        simulate_experiment(folder, SyntheticSpec(seed=seed, **{**BASE, **kw}), overwrite=True)
+    exp = read_experiment(folder)
+    t0 = time.time()
+    d = diagnose(exp, candidates=cands, mesh_settings=ID_MESH, progress=lambda s: print("  ..", s, flush=True))
+    print("\n".join(d.lines()))
+    truth = {"B": 15.0, "A": 45.0}
+    def errs(p): return {k: round(100 * (p.get(f"E_{k}_kPa", np.nan) / v - 1), 1) for k, v in truth.items()}
+    b = d.baseline
+    print("BASE", errs(b.parameters), {k: round(v, 4) for k, v in b.misfit.items() if isinstance(v, float)})
+    for c in d.candidates:
+        if not c.misfit: continue
+        red = {k: round(b.misfit[k] / max(c.misfit[k], 1e-12), 2) for k in ("force_rms_N", "displacement_rms_px", "displacement_systematic_px", "force_excess_N", "displacement_excess_px", "chi2")}
+        print("CAND", c.effect, errs(c.parameters), "reduction", red, {k: round(v, 3) for k, v in c.parameters.items() if not k.startswith("E_")})
+    print("seconds", round(time.time() - t0))
