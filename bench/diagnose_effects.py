@@ -2,6 +2,11 @@
 errors and how much each candidate lowers each misfit.
 
     python bench/diagnose_effects.py EFFECT SEED [candidates]   (EFFECT: an effect id or none)
+
+The experiment is simulated once into a temporary folder and reused; set TAG=x for a
+fresh one (the truth mesh differs each time: fTetWild is not deterministic).
+IMG=192x180 sets the image size, TRUTHSCALE the truth mesh's scale of the
+identification mesh (0.7 by default), IDSCALE the identification mesh's scale.
 """
 import os, sys, tempfile, time
 from pathlib import Path
@@ -27,7 +32,11 @@ if __name__ == "__main__":
     elif eff == "inclusion":
         kw = dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),), moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})
     elif eff != "none": kw = dict(effects=(eff,))
-    folder = Path(tempfile.gettempdir()) / f"elastoid-bench-{eff}-{seed}"
+    folder = Path(tempfile.gettempdir()) / f"elastoid-bench-{eff}-{seed}{os.environ.get('TAG', '')}"
+    if os.environ.get("TRUTHSCALE"):
+        BASE["truth_mesh"] = ID_MESH.with_scale(float(os.environ["TRUTHSCALE"]))
+    if os.environ.get("IMG"):
+        BASE["image_shape"] = tuple(int(v) for v in os.environ["IMG"].split("x"))
     mesh_scale = float(os.environ.get("IDSCALE", "1"))
     ID_MESH = ID_MESH.with_scale(mesh_scale)
     if not (folder / "experiment.toml").exists():

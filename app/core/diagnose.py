@@ -20,8 +20,12 @@ current optimum (a warm start). Each fit is scored by an information criterion
     score(effect) = chi2(current) - chi2(current + effect) - k ln N
 
 with k the parameters the effect adds (a switch without a continuous parameter
-counts as one) and N the number of measurements. The verdict is the best
-candidate with a positive score, else "none".
+counts as one) and N the number of measurements. The noise model does not
+know the model's own (mesh) error, so a candidate must also be material
+(:func:`is_material`): remove at least 30% of the current model's error beyond
+the noise. The verdict is the best-scoring candidate with a positive score that
+is material, else "none". :func:`signature_match` says how well the misfit has
+the shape the effect predicts.
 
 The fits minimize that same chi2 (maximum likelihood), so the criterion
 compares maxima. The contract's cost parts (-NMI, force RMS) are reported too.
@@ -85,6 +89,56 @@ def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> tu
     return np.asarray(out).reshape(-1, 2), np.asarray(counts, float)
 
 
+MATERIAL_FRACTION = 0.3  # of the current model's error an effect must remove to be material
+MATERIAL_MIN = 0.5  # an error below this fraction of its noise floor is nothing to explain
+
+
+def explained(before: dict, after: dict) -> dict:
+    """How much of the current model's error (the misfit beyond the noise) a
+    candidate removes, per channel: {"force": fraction, "displacement": fraction},
+    with None for a channel whose current error is below MATERIAL_MIN of its floor
+    (there is nothing there to explain)."""
+    out = {}
+    for ch, unit in (("force", "N"), ("displacement", "px")):
+        e0, e1 = before.get(f"{ch}_excess_{unit}"), after.get(f"{ch}_excess_{unit}")
+        floor = before.get(f"{ch}_floor_{unit}")
+        if e0 is None or e1 is None or floor is None or e0 < MATERIAL_MIN * floor or e0 <= 0:
+            out[ch] = None
+        else:
+            out[ch] = float(1.0 - e1 / e0)
+    return out
+
+
+def is_material(before: dict, after: dict) -> bool:
+    """A candidate is material when it removes at least MATERIAL_FRACTION of the
+    current model's error in the force or in the displacement."""
+    return any(f is not None and f >= MATERIAL_FRACTION for f in explained(before, after).values())
+
+
+def signature_match(channel: str, tracked: TrackedField, base_px, cand_px, force_N, base_force_N,
+                    cand_force_N) -> float:
+    """Whether the current model's misfit has the shape an effect predicts: the
+    cosine between the misfit (measured - current model) and the change the fitted
+    effect makes to the model (candidate - current), in the effect's channel.
+
+    Images: the smooth part of the tracked misfit (3 x 3 block medians, as for the
+    error) against the change of the modelled displacement at the same blocks.
+    Force: the force misfit over the log against the change of the modelled force.
+    1: the misfit is exactly the effect's pattern; 0: unrelated; < 0: opposite."""
+    if channel == "force":
+        r = np.asarray(force_N, float) - base_force_N
+        d = np.asarray(cand_force_N, float) - base_force_N
+    else:
+        rs, ds = [], []
+        for tp, m0, m1 in zip(tracked.pairs, base_px, cand_px):
+            sm, _ = _systematic(tp.measured_px - m0, tp.valid, tp.grid_index)
+            rs.append(sm.ravel())
+            ds.append((m1 - m0)[tp.valid].ravel())
+        r, d = np.concatenate(rs), np.concatenate(ds)
+    den = float(np.linalg.norm(r) * np.linalg.norm(d))
+    return float(r @ d / den) if den > 0 else 0.0
+
+
 def excess(rms: float, floor: float) -> float:
     """The part of an RMS misfit the noise cannot explain: sqrt(max(rms^2 - floor^2, 0))."""
     return float(np.sqrt(max(rms * rms - floor * floor, 0.0)))
@@ -136,7 +190,10 @@ class Likelihood:
                 "force_excess_N": excess(float(np.sqrt(np.mean((rF * self.noise.force_sigma_N) ** 2))),
                                          self.noise.force_sigma_N),
                 "displacement_excess_px": excess(float(np.sqrt(sys_sq / max(sys_n, 1))),
-                                                 float(np.sqrt(floor_sq / max(sys_n, 1))))}
+                                                 float(np.sqrt(floor_sq / max(sys_n, 1)))),
+                # what the noise alone leaves in those two measures
+                "force_floor_N": self.noise.force_sigma_N,
+                "displacement_floor_px": float(np.sqrt(floor_sq / max(sys_n, 1)))}
 
     def __call__(self, params: dict) -> float:
         return self.parts(params)["total"]
@@ -157,6 +214,20 @@ class Candidate:
     inclusion: dict | None = None  # the located region (name, center_mm, radius_mm)
     seconds: float = 0.0
     problem: EffectProblem | None = field(default=None, repr=False)
+    material: bool = False  # removes a material part of the error beyond the noise (see is_material)
+    signature: float | None = None  # how well the misfit matches the effect's pattern (signature_match)
+
+    @property
+    def explanation(self) -> str:
+        """The evidence sentence, with a note when the fit leaves the error beyond the noise
+        (mostly) where it was."""
+        text = self.evidence
+        if self.signature is not None and math.isfinite(self.score):
+            text += f"; the misfit has the pattern this effect predicts to {max(self.signature, 0.0):.0%}"
+        if self.material or not math.isfinite(self.score) or self.score <= 0 or not self.misfit:
+            return text
+        return (f"{text} (but it removes less than {MATERIAL_FRACTION:.0%} of the error beyond the "
+                f"noise, so it is not a verdict)")
 
     def to_json_dict(self) -> dict:
         params = dict(self.parameters)
@@ -164,7 +235,8 @@ class Candidate:
             params["center_mm"] = self.inclusion["center_mm"]
             params["radius_mm"] = self.inclusion["radius_mm"]
         d = {"effect": self.effect, "effects": list(self.effects), "cost": self.cost, "parameters": params,
-             "score": round(float(self.score), 3), "evidence": self.evidence,
+             "score": round(float(self.score), 3), "evidence": self.evidence, "material": self.material,
+             "signature_match": None if self.signature is None else round(self.signature, 3),
              "misfit": {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.misfit.items()},
              "added_parameters": self.n_parameters, "seconds": round(self.seconds, 2)}
         if self.inclusion:
@@ -206,7 +278,7 @@ class Diagnosis:
                f"force misfit {self.baseline.misfit['force_rms_N']:.4f} N, displacement misfit "
                f"{self.baseline.misfit['displacement_rms_px']:.3f} px", f"noise model: {self.noise.describe()}"]
         for i, c in enumerate(self.candidates, 1):
-            out.append(f"{i}. {c.effect:16s} score {c.score:9.1f}   {c.evidence}")
+            out.append(f"{i}. {c.effect:16s} score {c.score:9.1f}   {c.explanation}")
         out.append(f"verdict: {self.verdict}")
         return out
 
@@ -222,6 +294,7 @@ def _misfit(lik: Likelihood, params: dict) -> dict:
             "force_rms_N": p["force_rms_N"], "displacement_rms_px": p["displacement_rms_px"],
             "displacement_systematic_px": p["displacement_systematic_px"],
             "force_excess_N": p["force_excess_N"], "displacement_excess_px": p["displacement_excess_px"],
+            "force_floor_N": p["force_floor_N"], "displacement_floor_px": p["displacement_floor_px"],
             "n_force": lik.noise.n_force, "n_images": lik.noise.n_displacement}
 
 
@@ -314,9 +387,11 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
         cand.seconds = time.perf_counter() - t1
         if math.isfinite(cand.score):
             cand.score = base.misfit["chi2"] - cand.misfit["chi2"] - cand.n_parameters * lnN
+            cand.material = is_material(base.misfit, cand.misfit)
         out.append(cand)
     out.sort(key=lambda c: -c.score)
-    verdict = out[0].effect if out and out[0].score > 0 else "none"
+    earned = [c for c in out if c.score > 0 and c.material]
+    verdict = earned[0].effect if earned else "none"
     return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked)
 
 
@@ -356,6 +431,9 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
             res = r
     mis = _misfit(lik, res.parameters)
     cand = Candidate(eff, effects, res.parameters, res.cost, mis, INFO[eff].n_parameters, 0.0, "", inclusion, 0.0, cp)
+    cand.signature = signature_match(INFO[eff].channel, tracked, lik0.model_px(base.parameters),
+                                     lik.model_px(res.parameters), problem.log_F,
+                                     problem.model_force_N(base.parameters), cp.model_force_N(res.parameters))
     cand.evidence = _evidence(eff, problem, base, cand, tracked, lik0, lik)
     return cand
 

@@ -22,7 +22,7 @@ ID_MESH = MeshSettings(edge_mm=6.0, probe_edge_mm=2.5, region_edge_mm=2.5)
 BASE = dict(size_mm=(40.0, 40.0, 30.0),
             regions=(Region("B", "background"), Region("A", "sphere", center_mm=(20.0, 20.0, 18.0), radius_mm=7.0)),
             moduli_kPa={"B": 15.0, "A": 45.0}, face_mm=(24.0, 8.0), depth_mm=5.0, frames_at_mm=(0.0, 2.5, 5.0),
-            image_shape=(128, 120), truth_mesh=ID_MESH.with_scale(0.7))
+            image_shape=(192, 180), truth_mesh=ID_MESH.with_scale(0.7))
 FAST = ("viscoelastic", "sliding-bottom", "probe-slip")
 
 
@@ -53,6 +53,7 @@ def test_hidden_viscoelasticity_is_named_and_adding_it_fixes_the_model(visco):
         assert abs(err) < 0.10, (region, err)
     assert c.parameters["g1"] == pytest.approx(0.35, rel=0.15)
     assert "relaxes" in c.evidence and "constant" in c.evidence
+    assert c.material and c.signature >= 0.6, d.lines()
     payload = d.to_json_dict()
     assert payload["verdict"] == "viscoelastic" and payload["candidates"][0]["effect"] == "viscoelastic"
     assert {"total", "nmi", "force_rms_N"} <= set(payload["candidates"][0]["cost"])
@@ -63,6 +64,8 @@ def test_no_hidden_effect_gives_none(tmp_path_factory, seed):
     exp = _make(tmp_path_factory, "none", seed)
     d = diagnose(exp, candidates=FAST, mesh_settings=ID_MESH)
     assert d.verdict == "none", d.lines()
+    # nothing material: whatever scores above zero explains little of the error beyond the noise
+    assert not any(c.material and c.score > 0 for c in d.candidates), d.lines()
 
 
 def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
@@ -110,31 +113,34 @@ def test_diagnose_stops_when_cancelled(visco):
 
 
 IMAGE_CANDIDATES = ("sliding-bottom", "probe-slip", "compressibility", "viscoelastic")
-# (effect, seed, truth, moduli tolerance with the effect added). Sliding-bottom
-# has met 10% on three of four runs (E_A +23% on the fourth: the small inclusion
-# is weakly seen once the bottom slides), so its test holds 30% until that is fixed.
-IMAGE_CASES = [("sliding-bottom", 13, dict(effects=("sliding-bottom",)), 0.30),
-               ("probe-slip", 14, dict(effects=("probe-slip",)), 0.10),
-               ("compressibility", 14, dict(nu=0.3), 0.10)]
+# (effect, seed, truth, moduli tolerance {region: relative} with the effect added).
+# Measured with bench/diagnose_effects.py (IMG=192x180, fresh meshes each run):
+# with sliding-bottom added E_B came within 3% in 7 of 7 runs and E_A within 8%
+# in 6 of 7 (+17% in one: once the bottom slides, the field barely depends on
+# the 7 mm inclusion, and mesh-to-mesh differences move it), so E_A holds 20%.
+IMAGE_CASES = [("sliding-bottom", 13, dict(effects=("sliding-bottom",)), {"B": 0.10, "A": 0.20}),
+               ("probe-slip", 14, dict(effects=("probe-slip",)), {"B": 0.10, "A": 0.10}),
+               ("compressibility", 14, dict(nu=0.3), {"B": 0.10, "A": 0.10})]
 
 
 @pytest.mark.parametrize("effect,seed,truth,tol", IMAGE_CASES, ids=[c[0] for c in IMAGE_CASES])
 def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_factory, effect, seed, truth, tol):
     """The truth has an effect the baseline lacks and that shows in the images
     (the specimen slides on the table, the probe slides on the surface, the
-    tissue is compressible). The diagnosis names it first; with it the moduli
-    come within 10% (the baseline's were off by 10-80% on these cases) and the
+    tissue is compressible). The baseline's misfit has the pattern the effect
+    predicts; the diagnosis names it first; with it the moduli come within
+    tolerance (the baseline's were off by 10-200% on these cases) and the
     displacement error (systematic misfit beyond the tracking noise) falls.
 
-    Measured over seeds 12-14 (docs/model-check.md): named first every time;
-    the error fell 1.3-4.8x, at least 3x in half the cases, so 3x is not
-    asserted here."""
+    Measured over 12 runs (docs/model-check.md): named first every time; the
+    error fell at least 3x in 11 (1.8x in one probe-slip run), so 2x is asserted."""
     exp = _make(tmp_path_factory, effect, seed, **truth)
     d = diagnose(exp, candidates=IMAGE_CANDIDATES, mesh_settings=ID_MESH)
     assert d.verdict == effect, d.lines()
     c = d.candidate(effect)
+    assert c.material and c.signature >= 0.6, d.lines()
     for region, err in _moduli_errors(c.parameters, read_truth(exp.path)["moduli_kPa"]).items():
-        assert abs(err) < tol, (region, err, d.lines())
-    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 1.2, d.lines()
+        assert abs(err) < tol[region], (region, err, d.lines())
+    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 2.0, d.lines()
     if effect == "compressibility":
         assert c.parameters["nu"] == pytest.approx(0.3, abs=0.08)

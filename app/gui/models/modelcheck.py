@@ -265,7 +265,7 @@ def diagnosis_rows(diagnosis) -> list[dict]:
     for i, c in enumerate(diagnosis.candidates, 1):
         rows.append({"rank": i, "effect": c.effect, "title": INFO[c.effect].title if c.effect in INFO else "",
                      "score": c.score, "score_text": score_text(c.score), "parameters": key_parameters(c),
-                     "evidence": c.evidence or "", "verdict": c.effect == diagnosis.verdict,
+                     "evidence": c.explanation or "", "verdict": c.effect == diagnosis.verdict,
                      "fitted": c.problem is not None and math.isfinite(c.score)})
     return rows
 
