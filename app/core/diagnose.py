@@ -401,9 +401,11 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
     start = dict(base.parameters)
     inclusion = problem.inclusion
     if eff == "inclusion":
-        from app.core.effects.inclusion import locate
+        from app.core.effects.inclusion import scan
 
-        guess = locate(tracked, lik0.model_px(base.parameters), problem.exp, problem.exp.probe.center_mm[1])
+        say("scanning the image plane for an undescribed inclusion")
+        guess = scan(problem, base.parameters, tracked, lik0.model_px(base.parameters), noise.displacement_sigma_px,
+                     cancel=cancel)
         if guess is None:
             raise ElastoidError("no localized misfit to place an inclusion at")
         say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm")

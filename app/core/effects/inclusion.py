@@ -1,12 +1,20 @@
 """The ``inclusion`` effect: a region the experiment does not describe.
 
-Located from the misfit: the tracked displacement misfit (measured - model) of
-the frame pair with the largest travel is differentiated on the block grid into
-a strain misfit (d/drow of the vertical part + d/dcol of the lateral part). An
-inclusion stiffer (softer) than its surroundings is strained less (more) than
-the model says, so the strain misfit has one extremum there. Its centre on the
-image plane gives the region's centre (in the image plane: the frames see only
-that plane), the extent of the blob above half its extreme gives the radius.
+Located by a sensitivity scan of the tracked misfit (:func:`scan`). Candidate
+spheres are laid on the image plane (the frames see only that plane) on a grid
+of centres and a few radii. For each, the linearized change of the model's
+displacement at the tracked blocks when the tissue inside it gets stiffer,
+
+    du = -K^-1 (K_S u),   K_S u = sum over quadrature points inside the sphere
+                                  of their internal-force contribution,
+
+is one back-substitution with the current model's factorized stiffness. The
+misfit (measured - model) is fitted by that pattern after removing what the
+described regions' own moduli can already do (their patterns are projected
+out); the candidate that explains the most misfit is the inclusion, stiffer or
+softer by the sign of its amplitude. This uses every tracked block rather than
+differentiating a noisy residual (the strain-misfit peak it replaced landed on
+region A's edge on our phantoms).
 
 The region is a sphere added to the specimen (``Specimen.with_region``), meshed
 as a new region; its modulus E_<name>_kPa becomes a parameter. The diagnosis
@@ -28,7 +36,7 @@ class InclusionGuess:
     center_mm: tuple[float, float, float]
     radius_mm: float
     stiffer: bool  # the strain misfit says stiffer than the surroundings
-    strain_misfit: float  # the extremum (measured - model vertical strain per block)
+    explained: float  # misfit the sphere's pattern explains (chi2 units, described regions' patterns removed)
 
     def region(self) -> Region:
         return Region(self.name, "sphere", center_mm=tuple(self.center_mm), radius_mm=float(self.radius_mm))
@@ -44,75 +52,112 @@ def new_region_name(existing) -> str:
     return f"I{len(existing) + 1}"
 
 
-def strain_misfit_map(tracked_pair, model_px: np.ndarray, block_px: int):
-    """(grid of the strain misfit, grid of world points) for one tracked pair.
-
-    Strain misfit per block: d(residual row)/d(row) + d(residual col)/d(col), in
-    px per px, NaN where a neighbour is missing."""
-    g = tracked_pair.grid_index
-    nr, nc = g[:, 0].max() + 1, g[:, 1].max() + 1
-    res = np.full((nr, nc, 2), np.nan)
-    ok = tracked_pair.valid
-    res[g[ok, 0], g[ok, 1]] = (tracked_pair.measured_px - model_px)[ok]
-    world = np.full((nr, nc, 3), np.nan)
-    world[g[:, 0], g[:, 1]] = tracked_pair.points_world_mm
-    # robust: median of the residual in 3 x 3 neighbourhoods before differencing
-    from scipy.ndimage import generic_filter
-
-    sm = np.stack([generic_filter(res[..., k], np.nanmedian, size=3, mode="constant", cval=np.nan)
-                   for k in range(2)], -1)
-    e = np.full((nr, nc), np.nan)
-    e_r = np.gradient(sm[..., 1], axis=0) if nr > 1 else np.zeros((nr, nc))
-    e_c = np.gradient(sm[..., 0], axis=1) if nc > 1 else np.zeros((nr, nc))
-    e = (e_r + e_c) / float(block_px)
-    return e, world
-
-
-def locate(tracked, model_px_per_pair, exp, probe_y_mm: float | None = None) -> InclusionGuess | None:
-    """Guess an inclusion from the strain misfit of the deepest-travel pair."""
-    k = int(np.argmax([abs(p.measured_px[p.valid, 1]).mean() if p.valid.any() else 0 for p in tracked.pairs]))
-    tp = tracked.pairs[k]
-    e, world = strain_misfit_map(tp, model_px_per_pair[k], tracked.block_px)
-    if not np.any(np.isfinite(e)):
-        return None
-    # ignore the rows right under the probe and the border blocks (edge effects of differencing)
-    e = e.copy()
-    e[0, :] = np.nan
-    e[:, 0] = np.nan
-    e[:, -1] = np.nan
-    e[-1, :] = np.nan
-    if not np.any(np.isfinite(e)):
-        return None
-    i, j = np.unravel_index(np.nanargmax(np.abs(e)), e.shape)
-    peak = e[i, j]
-    from scipy.ndimage import label
-
-    blob, _ = label(np.nan_to_num(np.abs(e)) >= 0.5 * abs(peak))
-    members = blob == blob[i, j]
-    w = np.abs(np.nan_to_num(e)) * members
-    pts = world[members]
-    wt = w[members]
-    centre = (pts * wt[:, None]).sum(0) / wt.sum()
-    area_mm2 = members.sum() * (tracked.block_px * exp.imaging.pixel_spacing_mm[0]) * \
-        (tracked.block_px * exp.imaging.pixel_spacing_mm[1])
-    radius = float(np.sqrt(area_mm2 / np.pi))
-    if probe_y_mm is not None:
-        centre[1] = probe_y_mm
-    size = np.asarray(exp.specimen.size_mm, float)
-    radius = float(np.clip(radius, 1.5, 0.25 * size.min()))
-    # keep the sphere inside the specimen and off its faces
-    margin = radius + 0.5
-    centre = np.clip(centre, margin, size - margin)
-    # residual row displacement: rows grow with depth and tissue moves up (negative rows) when pressed;
-    # a stiffer inclusion is compressed less: measured d(row disp)/d(row) larger than the model's
-    stiffer = bool(peak > 0)
-    name = new_region_name(exp.specimen.region_names)
-    return InclusionGuess(name, tuple(float(c) for c in centre), radius, stiffer, float(peak))
-
-
 def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float) -> str:
     kind = "stiffer" if e_ratio >= 1 else "softer"
     return (f"a region the experiment does not describe, about {2 * guess.radius_mm:.0f} mm across at "
             f"{depth_mm:.0f} mm depth, deforms {'less' if e_ratio >= 1 else 'more'} than its surroundings: "
             f"as an inclusion {e_ratio:.1f} times {kind if e_ratio >= 1 else 'as stiff'} "
             f"it explains the misfit")
+
+
+def scan(problem, params: dict, tracked, model_px_per_pair, noise_px: float, radii_mm=None,
+         cancel=None) -> InclusionGuess | None:
+    """Locate an undescribed inclusion by the sensitivity scan (module docstring).
+
+    ``problem``: the current model (an :class:`app.core.effects.model.EffectProblem`)
+    at ``params``; ``model_px_per_pair``: its displacement at the tracked blocks."""
+    from app.core.errors import Cancelled
+    from app.core.fem import QUAD_BARY, QUAD_W, coefficients, interpolation_matrix, lame, quadrature_points, \
+        shape_gradients
+    from app.core.solver import Factorized
+
+    fe = problem.fe
+    space = fe.space
+    exp = problem.exp
+    size = np.asarray(exp.specimen.size_mm, float)
+    params = problem.complete(params)
+    E, nu = problem.moduli(params), problem.poisson(params)
+    A, b, _, _ = fe.term_blocks(coefficients(E, nu))
+    fac = Factorized(A)
+    try:
+        u = np.zeros(space.n_dofs)
+        u[fe.free] = fac.solve(b)
+        u[fe.fixed] = fe.lift
+        # every quadrature point's contribution to the internal force (m, q, 10, 3)
+        m = len(space.elems)
+        dN = shape_gradients(QUAD_BARY, space.grad_bary, space.degree)
+        wV = space.volumes_mm3[:, None] * QUAD_W[None, :]
+        dofs = (3 * space.elems[:, :, None] + np.arange(3)).reshape(m, -1)
+        G = np.einsum("mai,mqaj->mqij", u[dofs].reshape(m, -1, 3), dN, optimize=True)
+        eps = 0.5 * (G + G.transpose(0, 1, 3, 2))
+        mus, lams = np.array([lame(float(e), nu) for e in E]).T
+        lab = space.labels
+        tr = np.trace(eps, axis1=2, axis2=3)
+        sig = 2 * mus[lab][:, None, None, None] * eps + (lams[lab][:, None] * tr)[..., None, None] * np.eye(3)
+        fq = np.einsum("mq,mqij,mqaj->mqai", wV, sig, dN, optimize=True).reshape(m, len(QUAD_W), -1)
+        xq = quadrature_points(space, QUAD_BARY)  # (m, q, 3)
+
+        # the tracked blocks: interpolation, valid mask, misfit
+        ops, rs = [], []
+        for tp, pair, mp in zip(tracked.pairs, problem.pairs, model_px_per_pair):
+            pts = np.clip(tp.points_world_mm[tp.valid], 0.0, size)
+            ops.append((interpolation_matrix(space, pts), pair.d_target_mm - pair.d_source_mm))
+            rs.append((tp.measured_px - mp)[tp.valid])
+        r = np.clip(np.concatenate(rs).ravel(), -3 * noise_px, 3 * noise_px)
+        if r.size < 6:
+            return None
+
+        def pattern(weights) -> np.ndarray:
+            """Model change (px, flattened like r) per unit relative stiffening of the
+            tissue at the quadrature points with these weights (m, q)."""
+            rows = np.flatnonzero(weights.any(axis=1))
+            if len(rows) == 0:
+                return np.zeros_like(r)
+            g = np.bincount(dofs[rows].ravel(), weights=np.einsum("mq,mqk->mk", weights[rows], fq[rows]).ravel(),
+                            minlength=space.n_dofs)
+            du = np.zeros(space.n_dofs)
+            du[fe.free] = -fac.solve(g[fe.free])
+            out = []
+            for P, dd in ops:
+                d = (P @ du).reshape(-1, 3)
+                out.append(dd * np.column_stack([d @ problem._lat / problem._sc, -d[:, 2] / problem._sr]))
+            return np.concatenate(out).ravel()
+
+        # what the described regions' moduli can already do
+        R = np.column_stack([pattern(np.repeat((lab == k)[:, None], len(QUAD_W), 1).astype(float))
+                             for k in range(len(E))])
+        Q, _ = np.linalg.qr(R)
+        r_perp = r - Q @ (Q.T @ r)
+
+        world = np.concatenate([tp.points_world_mm[tp.valid] for tp in tracked.pairs])
+        lo, hi = world.min(axis=0), world.max(axis=0)
+        if radii_mm is None:
+            radii_mm = sorted({max(1.5, 0.06 * size.min()), 0.1 * size.min(), 0.15 * size.min()})
+        step = max(tracked.block_px * min(problem._sc, problem._sr), 0.04 * size.min())
+        y = float(exp.probe.center_mm[1])
+        best = None
+        for rad in radii_mm:
+            for x in np.arange(lo[0], hi[0] + 1e-9, step):
+                for z in np.arange(lo[2], hi[2] + 1e-9, step):
+                    if cancel is not None and cancel.is_set():
+                        raise Cancelled("inclusion scan cancelled")
+                    c = np.clip([x, y, z], rad + 0.5, size - rad - 0.5)
+                    w = (np.linalg.norm(xq - c, axis=2) < rad).astype(float)
+                    if w.sum() < 1:
+                        continue
+                    J = pattern(w)
+                    J = J - Q @ (Q.T @ J)
+                    jj = float(J @ J)
+                    if jj <= 0:
+                        continue
+                    amp = float(J @ r_perp) / jj
+                    gain = amp * amp * jj  # px^2 of misfit explained
+                    if best is None or gain > best[0]:
+                        best = (gain, c, rad, amp)
+    finally:
+        fac.free()
+    if best is None:
+        return None
+    gain, c, rad, amp = best
+    name = new_region_name(exp.specimen.region_names)
+    return InclusionGuess(name, tuple(float(v) for v in c), float(rad), bool(amp > 0), float(gain / noise_px**2))
