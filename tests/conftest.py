@@ -8,9 +8,26 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
+FIXED_MESHES = ROOT / "tests" / "data" / "meshes"
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _mesh_cache(tmp_path_factory):
-    """Meshes are cached on disk; tests share one cache per session (or the one given)."""
+    """Meshes are cached on disk; tests share one cache per session (or the one given).
+
+    The cache starts with the committed meshes of tests/data/meshes (named by
+    their cache key): fTetWild is not deterministic, so the tests whose outcome
+    depends on the exact mesh (identification accuracy, diagnosis) use fixed
+    ones and a run is reproducible. The spread over fresh meshes is measured in
+    bench/ (identify_spread.py, diagnose_effects.py)."""
+    import shutil
+
     if "ELASTOID_CACHE_DIR" not in os.environ:
         os.environ["ELASTOID_CACHE_DIR"] = str(tmp_path_factory.mktemp("elastoid-cache"))
+    from app.core.mesh import cache_dir
+
+    dst = cache_dir()
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in FIXED_MESHES.glob("*.npz"):
+        shutil.copy(f, dst / f.name)
     yield

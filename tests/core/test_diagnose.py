@@ -11,12 +11,11 @@ outcome of a case varies from run to run (the spread over fresh meshes is
 measured by bench/diagnose_effects.py and reported in docs/model-check.md). The
 identification mesh and the truth meshes these tests use are in
 tests/data/meshes, named by their cache key, and copied into the mesh cache
-first, so a run is reproducible. After a change to meshing (MESH_VERSION) the
+by tests/conftest.py, so a run is reproducible. After a change to meshing (MESH_VERSION) the
 keys change: the fixture says so; regenerate them by running this file with an
 empty cache and copying the new files from the cache.
 """
 
-import shutil
 import threading
 from pathlib import Path
 
@@ -38,18 +37,6 @@ FAST = ("viscoelastic", "sliding-bottom", "probe-slip")
 
 
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
-
-
-@pytest.fixture(scope="module", autouse=True)
-def fixed_meshes():
-    """The committed meshes, in the mesh cache before any case is simulated."""
-    from app.core.mesh import cache_dir
-
-    dst = cache_dir()
-    dst.mkdir(parents=True, exist_ok=True)
-    for f in MESHES.glob("*.npz"):
-        shutil.copy(f, dst / f.name)
-    yield
 
 
 def _check_fixed(exp):
