@@ -49,8 +49,17 @@ class Factorized:
         return self._lu.solve(b)
 
     def free(self) -> None:
-        if HAVE_PARDISO:
-            self._s.free_memory(everything=True)
+        """Release the factor now (MKL's memory is not released by garbage
+        collection of the Python object alone: :meth:`__del__` calls this)."""
+        if HAVE_PARDISO and getattr(self, "_s", None) is not None:
+            s, self._s = self._s, None
+            s.free_memory(everything=True)
+
+    def __del__(self):
+        try:
+            self.free()
+        except Exception:  # interpreter shutdown: modules may be gone
+            pass
 
 
 class SymmetricFactor:
@@ -130,9 +139,15 @@ class SymmetricFactor:
     def free(self) -> None:
         if self._fallback is not None:
             self._fallback.free()
-        elif self._s is not None:
+        elif getattr(self, "_s", None) is not None:
             self._call(-1, np.zeros(self.n, self.dtype))
             self._s = None
+
+    def __del__(self):  # MKL's memory outlives the Python object unless released
+        try:
+            self.free()
+        except Exception:  # interpreter shutdown: modules may be gone
+            pass
 
 
 def spsolve(A: sp.spmatrix, b: np.ndarray) -> np.ndarray:
