@@ -207,12 +207,17 @@ class HyperelasticModel:
         F[..., 2, 2] += 1.0
         return F
 
-    def internal_force(self, u: np.ndarray, mu_e: np.ndarray, lam_e: np.ndarray) -> np.ndarray:
-        """f_int (n_dofs,) in mN: the derivative of the stored energy."""
+    def internal_force(self, u: np.ndarray, mu_e: np.ndarray, lam_e: np.ndarray, with_energy: bool = False):
+        """f_int (n_dofs,) in mN: the derivative of the stored energy; with
+        ``with_energy``, (f_int, stored energy) from one deformation gradient."""
         self.n_residuals += 1
-        P = neo_hookean_stress(self.deformation_gradient(u), mu_e[:, None], lam_e[:, None])
+        F = self.deformation_gradient(u)
+        P = neo_hookean_stress(F, mu_e[:, None], lam_e[:, None])
         fe = np.einsum("mq,mqiJ,mqaJ->mai", self.wV, P, self.dN, optimize=True)
-        return np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.n_dofs)
+        f = np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.n_dofs)
+        if with_energy:
+            return f, float(np.sum(self.wV * neo_hookean_energy(F, mu_e[:, None], lam_e[:, None])))
+        return f
 
     def energy(self, u: np.ndarray, mu_e: np.ndarray, lam_e: np.ndarray) -> float:
         """Stored energy in kPa mm^3 (= uJ)."""
@@ -364,11 +369,7 @@ class HyperelasticModel:
                 raise Cancelled("hyperelastic solve cancelled")
             u[free] = x
             try:
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    f = self.internal_force(u, mu_e, lam_e)
-                    e = self.energy(u, mu_e, lam_e)
-                if not np.isfinite(e):
-                    raise ValueError("inverted element")
+                f, e = self.internal_force(u, mu_e, lam_e, with_energy=True)
             except ValueError:  # an inverted element: back towards the last good iterate
                 if last_good is None:
                     raise _StepFailed(d) from None
