@@ -28,6 +28,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QGridLay
                                QHeaderView, QLabel, QPlainTextEdit, QProgressBar, QPushButton, QSplitter,
                                QTableWidget, QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
+from app.core.diagnose import MATERIAL_FRACTION
 from app.core.effects import EFFECT_IDS, INFO
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
@@ -327,7 +328,8 @@ class ModelCheckPanel(Panel):
         lay.addWidget(self.diagnosis_table, 1)
         lay.addWidget(hint("Score = chi2(current) - chi2(current + effect) - k ln N: the drop of the misfit under "
                            "the noise model, less what the effect's k parameters cost (BIC). The verdict is the best "
-                           "positive score, else none."))
+                           "positive score among the effects that also remove at least "
+                           f"{MATERIAL_FRACTION:.0%} of the error beyond the noise, else none."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
