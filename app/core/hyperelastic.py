@@ -10,9 +10,14 @@ first Piola-Kirchhoff stress is P = mu (F - F^-T) + lam ln J F^-T.
 
 The probe travel is applied in load steps. At each step the equilibrium
 R(u) = f_int(u) = 0 on the free dofs is solved by a modified Newton iteration
-whose fixed matrix is the *linear* stiffness (one factorization, reused by
-every step and, across solves, by every moduli set near it), accelerated by
-Anderson mixing. The reaction on the probe is the probe's share of f_int.
+whose fixed matrix is a factorized tangent, accelerated by Anderson mixing,
+with a backtracking line search on the stored energy. The first solve walks
+the load path (continuation from step to step); it leaves, at every requested
+travel, the equilibrium and the tangent factorized there (positive definite at
+a stable equilibrium). A later solve with moduli ratios near those starts each
+travel from that equilibrium with that tangent, so inside a fit a solve costs a
+few iterations per travel and no factorization. The reaction on the probe is
+the probe's share of f_int.
 
 Like the linear field, the hyperelastic field under displacement control
 depends only on the ratios of the moduli, and the force scales with their level.
@@ -22,6 +27,7 @@ Units: mm, kPa, N (f_int is in mN with kPa and mm).
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 from typing import Callable
@@ -131,6 +137,11 @@ class _Preconditioner:
     factor: SymmetricFactor
     ratios: np.ndarray  # moduli ratios (to the first region) it was built for
     scale: float  # modulus of the first region it was built with
+    at_equilibrium: bool = False  # the tangent of a converged state (not of an iterate)
+
+
+def _near(ratios: np.ndarray, other: np.ndarray, factor: float = 1.5) -> bool:
+    return bool(np.max(np.abs(np.log(ratios / other))) <= np.log(factor))
 
 
 class HyperelasticModel:
@@ -138,18 +149,28 @@ class HyperelasticModel:
     partition (the same as the linear model's).
 
     Each load step is solved by Anderson-accelerated modified Newton: the fixed
-    matrix is a factorized tangent. A solve reuses the tangents that earlier
-    solves left at each load step (for nearby moduli ratios), so in a fit only
-    the first solve pays for factorizations; a step that converges slowly
-    refactorizes at its current iterate (a Newton step) and keeps the new factor.
+    matrix is a factorized tangent. A solve reuses the equilibria and tangents
+    that earlier solves left at each requested travel (for moduli ratios within
+    a factor 1.5), so in a fit only the first solve walks the load path and pays
+    for factorizations; a step that converges slowly refactorizes at its current
+    iterate (a Newton step). At every requested travel the tangent at the
+    equilibrium is kept (refactorized when the ratios moved by more than 10% or
+    the step needed more than 10 iterations).
 
     ``tol``: relative residual (free-dof internal force over the probe-dof
-    internal force) at which a load step has converged.
+    internal force) at which a load step has converged. ``max_step_fraction``:
+    the longest step of the load path walk, as a fraction of the specimen's
+    height (shorter steps converge in fewer iterations; the tangent is
+    refactorized only where a step is slow). ``reform_rate``: a step is slow
+    when three iterations reduce the residual by less than this cubed.
     """
 
     def __init__(self, fe: FEModel, tol: float = 1e-6, max_iterations: int = 60, anderson_depth: int = 5,
-                 reform_rate: float = 0.35, single: bool = True):
+                 reform_rate: float = 0.85, single: bool = True, max_step_fraction: float = 0.02):
         self.fe = fe
+        self.max_step_fraction = max_step_fraction
+        z = fe.space.points_mm[:, 2]
+        self.height_mm = float(z.max() - z.min())
         self.tol, self.max_iterations, self.depth = tol, max_iterations, anderson_depth
         self.reform_rate, self.single = reform_rate, single
         space = fe.space
@@ -162,6 +183,7 @@ class HyperelasticModel:
         self.dofs = (3 * self.elems[:, :, None] + np.arange(3)).reshape(m, -1)  # (m, 30)
         self._setup_pattern()
         self._cache: dict[float, _Preconditioner] = {}
+        self._equilibria: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # travel -> (ratios, u)
         self.n_factorizations = 0
         self.n_back_solves = 0
         self.n_residuals = 0
@@ -267,6 +289,7 @@ class HyperelasticModel:
         for p in self._cache.values():
             p.factor.free()
         self._cache.clear()
+        self._equilibria.clear()
 
     # --- solve -----------------------------------------------------------------
     def solve(self, youngs_kPa, nu: float, depths_mm, *, progress: Callable[[int, int], None] | None = None,
@@ -286,10 +309,17 @@ class HyperelasticModel:
         prev: list[np.ndarray] = []
         forces, fields, iters = [], [], []
         done_d: list[float] = []
-        todo = list(depths)
-        k = 0
-        n_sub = 0
-        while todo:
+        todo: list[float] = []
+        max_step = self.max_step_fraction * self.height_mm
+        i, n_sub = 0, 0
+        while todo or i < len(depths):
+            if not todo:  # the next requested travel: directly from a kept equilibrium, else in substeps
+                d_req = float(depths[i])
+                i += 1
+                d_prev = done_d[-1] if done_d else 0.0
+                n = 1 if self._warm_start(d_req, ratios) else max(1, math.ceil((d_req - d_prev) / max_step - 1e-9))
+                todo = list(d_prev + (d_req - d_prev) * np.arange(1, n + 1) / n)
+                todo[-1] = d_req
             d = todo[0]
             try:
                 u, n_it = self._step(d, done_d, prev, theta, ratios, nu, mu_e, lam_e, cancel)
@@ -304,20 +334,52 @@ class HyperelasticModel:
             todo.pop(0)
             done_d.append(d)
             prev.append(u.copy())
-            if any(abs(d - x) < 1e-12 for x in depths):
+            if d == d_req:
+                self._remember(d, u, ratios, mu_e, lam_e, theta, n_it)
                 f = self.internal_force(u, mu_e, lam_e)
                 forces.append(-float(fe.probe_z @ f[fixed]) * MN_TO_N)
                 fields.append(u.copy())
                 iters.append(n_it)
-                k += 1
                 if progress:
-                    progress(k, len(depths))
+                    progress(len(forces), len(depths))
         return HyperelasticSolution(depths, np.array(forces), np.array(fields), tuple(iters))
 
+    def _remember(self, d, u, ratios, mu_e, lam_e, theta, n_it) -> None:
+        """Keep the equilibrium at travel ``d``, and the tangent factorized there
+        unless one at an equilibrium of nearby ratios that converged this one
+        quickly is kept already."""
+        self._equilibria[d] = (ratios.copy(), u.copy())
+        own = self._cache.get(d)
+        if own is not None and own.at_equilibrium and _near(ratios, own.ratios, 1.1) and n_it <= 10:
+            return
+        data = self.tangent_upper(u, mu_e, lam_e) / theta[0]
+        if own is not None:
+            own.factor.refactor(data)
+            self.n_factorizations += 1
+            own.ratios, own.scale, own.at_equilibrium = ratios, 1.0, True
+        else:
+            self._cache[d] = _Preconditioner(self._factor(data), ratios, 1.0, True)
+
+    def _warm_start(self, d: float, ratios: np.ndarray) -> tuple[np.ndarray, _Preconditioner] | None:
+        """The equilibrium and tangent kept at travel ``d`` for nearby ratios, if any."""
+        kept, pre = self._equilibria.get(d), self._cache.get(d)
+        if kept is not None and pre is not None and pre.at_equilibrium and _near(ratios, kept[0]):
+            return kept[1], pre
+        return None
+
     def _step(self, d, done_d, prev, theta, ratios, nu, mu_e, lam_e, cancel):
-        """One load step from the last converged ones (extrapolated predictor)."""
+        """One load step: from the equilibrium an earlier solve left at this travel
+        (nearby ratios), else from the last converged steps (extrapolated predictor)."""
         fe = self.fe
         free, fixed = fe.free, fe.fixed
+        warm = self._warm_start(d, ratios)
+        if warm is not None:
+            u, pre = warm[0].copy(), warm[1]
+            u[fixed] = d * fe.lift
+            try:
+                return self._equilibrate(u, d, theta, ratios, mu_e, lam_e, pre, cancel)
+            except _StepFailed:
+                self.trace.append((d, "warm start failed"))
         if len(prev) >= 2:  # quadratic extrapolation through 0 and the last two steps
             d0, d1 = done_d[-2], done_d[-1]
             a1 = (prev[-1] / d1 - prev[-2] / d0) / (d1 - d0)
@@ -338,7 +400,7 @@ class HyperelasticModel:
     def _nearest(self, d: float, ratios: np.ndarray) -> _Preconditioner | None:
         best, dist = None, np.inf
         for dk, p in self._cache.items():
-            if dk <= 0 or np.max(np.abs(np.log(ratios / p.ratios))) > np.log(1.5):
+            if dk <= 0 or not _near(ratios, p.ratios):
                 continue
             if abs(dk - d) < dist:
                 best, dist = p, abs(dk - d)
@@ -347,7 +409,7 @@ class HyperelasticModel:
     def _linear_preconditioner(self, theta, nu) -> _Preconditioner:
         ratios = theta / theta[0]
         p = self._cache.get(0.0)
-        if p is None or np.max(np.abs(np.log(ratios / p.ratios))) > np.log(1.5):
+        if p is None or not _near(ratios, p.ratios):
             if p is not None:
                 p.factor.free()
             u0 = np.zeros(self.n_dofs)
@@ -401,7 +463,7 @@ class HyperelasticModel:
                 if own is not None:
                     own.factor.refactor(data)
                     self.n_factorizations += 1
-                    own.ratios, own.scale = ratios, 1.0
+                    own.ratios, own.scale, own.at_equilibrium = ratios, 1.0, False
                     pre = own
                 else:
                     pre = self._cache[d] = _Preconditioner(self._factor(data), ratios, 1.0)
