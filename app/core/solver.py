@@ -31,7 +31,18 @@ class Factorized:
             # real symmetric positive definite: PARDISO reads the upper triangle
             self._U = sp.triu(A, format="csr")
             self._U.sort_indices()
+            self._U.data = np.ascontiguousarray(self._U.data, np.float64)
+            # PARDISO's one-based index arrays, kept: pypardiso's own solve() converts
+            # them and compares the whole matrix with the factorized one on every
+            # call, which cost several times the back-substitution itself
+            self._ia = (self._U.indptr + 1).astype(np.int32)
+            self._ja = (self._U.indices + 1).astype(np.int32)
             self._s = pypardiso.PyPardisoSolver(mtype=2)
+            ip = self._s.iparm  # MKL's defaults (iparm[0] = 0) add two refinement steps to every solve
+            ip[0] = 1  # iparm given
+            ip[1] = 2  # METIS nested dissection
+            ip[7] = 0  # no iterative refinement: Cholesky of an SPD matrix is backward stable
+            ip[34] = 0  # one-based indices
             try:
                 self._s.factorize(self._U)
             except pypardiso.pardiso_wrapper.PyPardisoError as exc:
@@ -45,7 +56,9 @@ class Factorized:
     def solve(self, b: np.ndarray) -> np.ndarray:
         b = np.asarray(b, float)
         if HAVE_PARDISO:
-            return self._s.solve(self._U, b)
+            if b.shape[0] != self.shape[0]:
+                raise ValueError(f"right-hand side of {b.shape[0]} rows for a {self.shape[0]}-row matrix")
+            return _back_substitute(self._s, 2, self._U.data, self._ia, self._ja, b)
         return self._lu.solve(b)
 
     def free(self) -> None:
@@ -60,6 +73,30 @@ class Factorized:
             self.free()
         except Exception:  # interpreter shutdown: modules may be gone
             pass
+
+
+def _back_substitute(s, mtype: int, data: np.ndarray, ia: np.ndarray, ja: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """PARDISO phase 33 (solve with the factor held by pypardiso solver ``s``) for
+    one right-hand side or the columns of ``b``; ``data`` is in the factor's precision."""
+    import ctypes as ct
+
+    from app.core.errors import ElastoidError
+
+    b = np.asfortranarray(b, data.dtype)
+    x = np.zeros_like(b, order="F")
+    err = ct.c_int32(0)
+    i32 = ct.POINTER(ct.c_int32)
+    nrhs = 1 if b.ndim == 1 else b.shape[1]
+    s._mkl_pardiso.argtypes = None  # pypardiso sets double-only argtypes on the shared function
+    s._mkl_pardiso(s.pt.ctypes.data_as(ct.POINTER(s._pt_type[0])), ct.byref(ct.c_int32(1)), ct.byref(ct.c_int32(1)),
+                   ct.byref(ct.c_int32(mtype)), ct.byref(ct.c_int32(33)), ct.byref(ct.c_int32(len(ia) - 1)),
+                   data.ctypes.data_as(ct.c_void_p), ia.ctypes.data_as(i32), ja.ctypes.data_as(i32),
+                   s.perm.ctypes.data_as(i32), ct.byref(ct.c_int32(nrhs)), s.iparm.ctypes.data_as(i32),
+                   ct.byref(ct.c_int32(0)), b.ctypes.data_as(ct.c_void_p), x.ctypes.data_as(ct.c_void_p),
+                   ct.byref(err))
+    if err.value != 0:
+        raise ElastoidError(f"PARDISO failed (error {err.value})")
+    return np.ascontiguousarray(x)
 
 
 class SymmetricFactor:
