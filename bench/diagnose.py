@@ -1,5 +1,5 @@
 """Model check at paper size: one hyperelastic forward solve and a full diagnosis
-of the demo experiment (resources/demo: ~2,200 vertices, P2, ~46,000 dofs).
+of the demo experiment (resources/demo: P2, 52,929 dofs).
 
     /work/venv/bin/python bench/diagnose.py [--repeats 3] [--skip-diagnose] [--skip-hyperelastic]
                                             [--candidates a,b,...]
