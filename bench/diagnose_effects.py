@@ -1,7 +1,10 @@
 """Diagnose a small synthetic phantom with one hidden effect; print the ranking, the moduli
 errors and how much each candidate lowers each misfit.
 
-    python bench/diagnose_effects.py EFFECT SEED [candidates]   (EFFECT: an effect id or none)
+    python bench/diagnose_effects.py EFFECT SEED [candidates]   (EFFECT: an effect id, a+b, or none)
+
+With two effects hidden (EFFECT a+b), the verdict is added and a second diagnosis
+runs on top of it: it should name the other one.
 
 The experiment is simulated once into a temporary folder and reused; set TAG=x for a
 fresh one (the truth mesh differs each time: fTetWild is not deterministic).
@@ -31,6 +34,7 @@ if __name__ == "__main__":
     elif eff == "hyperelastic": kw = dict(effects=("hyperelastic",), depth_mm=7.5, frames_at_mm=(0.0, 3.75, 7.5))
     elif eff == "inclusion":
         kw = dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),), moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})
+    elif "+" in eff: kw = dict(effects=tuple(eff.split("+")))  # two (or more) hidden at once
     elif eff != "none": kw = dict(effects=(eff,))
     folder = Path(tempfile.gettempdir()) / f"elastoid-bench-{eff}-{seed}{os.environ.get('TAG', '')}"
     if os.environ.get("TRUTHSCALE"):
@@ -54,3 +58,18 @@ if __name__ == "__main__":
         red = {k: round(b.misfit[k] / max(c.misfit[k], 1e-12), 2) for k in ("force_rms_N", "displacement_rms_px", "displacement_systematic_px", "force_excess_N", "displacement_excess_px", "chi2")}
         print("CAND", c.effect, errs(c.parameters), "reduction", red, {k: round(v, 3) for k, v in c.parameters.items() if not k.startswith("E_")})
     print("seconds", round(time.time() - t0))
+    if "+" in eff and d.verdict != "none":
+        c = d.candidate(d.verdict)
+        t1 = time.time()
+        d2 = diagnose(exp, effects=(d.verdict,), candidates=tuple(x for x in (cands or ()) if x != d.verdict) or None,
+                      problem=c.problem, start=c.parameters, mesh_settings=ID_MESH, inclusion=c.inclusion,
+                      tracked=d.tracked, progress=lambda s: print("  ..", s, flush=True))
+        print(f"SECOND diagnosis with {d.verdict} added:")
+        print("\n".join(d2.lines()))
+        b2 = d2.baseline
+        print("BASE2", errs(b2.parameters))
+        for c2 in d2.candidates:
+            if not c2.misfit: continue
+            red = {k: round(b.misfit[k] / max(c2.misfit[k], 1e-12), 2) for k in ("force_rms_N", "displacement_rms_px", "force_excess_N", "displacement_excess_px", "chi2")}
+            print("CAND2", c2.effect, errs(c2.parameters), "reduction from the first baseline", red)
+        print("seconds", round(time.time() - t1))

@@ -163,11 +163,18 @@ class HyperelasticModel:
     height (shorter steps converge in fewer iterations; the tangent is
     refactorized only where a step is slow). ``reform_rate``: a step is slow
     when three iterations reduce the residual by less than this cubed.
+    ``warm_starts``: keep the equilibrium and a factorized tangent at every
+    requested travel (one factor each); off for a single solve (the simulator's
+    truth), which then holds one working factor besides the linear one.
     """
 
     def __init__(self, fe: FEModel, tol: float = 1e-6, max_iterations: int = 60, anderson_depth: int = 5,
-                 reform_rate: float = 0.85, single: bool = True, max_step_fraction: float = 0.02):
+                 reform_rate: float = 0.85, single: bool = True, max_step_fraction: float = 0.02,
+                 warm_starts: bool = True):
         self.fe = fe
+        self.warm_starts = warm_starts
+        self._walk: tuple[float, _Preconditioner] | None = None  # the walk's working tangent (travel, factor)
+        self._requested: set = set()
         self.max_step_fraction = max_step_fraction
         z = fe.space.points_mm[:, 2]
         self.height_mm = float(z.max() - z.min())
@@ -290,6 +297,9 @@ class HyperelasticModel:
             p.factor.free()
         self._cache.clear()
         self._equilibria.clear()
+        if self._walk is not None:
+            self._walk[1].factor.free()
+            self._walk = None
 
     # --- solve -----------------------------------------------------------------
     def solve(self, youngs_kPa, nu: float, depths_mm, *, progress: Callable[[int, int], None] | None = None,
@@ -310,6 +320,7 @@ class HyperelasticModel:
         forces, fields, iters = [], [], []
         done_d: list[float] = []
         todo: list[float] = []
+        self._requested = {float(x) for x in depths} if self.warm_starts else set()
         max_step = self.max_step_fraction * self.height_mm
         i, n_sub = 0, 0
         while todo or i < len(depths):
@@ -335,7 +346,8 @@ class HyperelasticModel:
             done_d.append(d)
             prev.append(u.copy())
             if d == d_req:
-                self._remember(d, u, ratios, mu_e, lam_e, theta, n_it)
+                if self.warm_starts:
+                    self._remember(d, u, ratios, mu_e, lam_e, theta, n_it)
                 f = self.internal_force(u, mu_e, lam_e)
                 forces.append(-float(fe.probe_z @ f[fixed]) * MN_TO_N)
                 fields.append(u.copy())
@@ -399,6 +411,8 @@ class HyperelasticModel:
 
     def _nearest(self, d: float, ratios: np.ndarray) -> _Preconditioner | None:
         best, dist = None, np.inf
+        if self._walk is not None and _near(ratios, self._walk[1].ratios):
+            best, dist = self._walk[1], abs(self._walk[0] - d)
         for dk, p in self._cache.items():
             if dk <= 0 or not _near(ratios, p.ratios):
                 continue
@@ -459,11 +473,19 @@ class HyperelasticModel:
             slow = (len(hist) > 3 and hist[-1] > self.reform_rate ** 3 * hist[-4]) or hist[-1] > 2 * min(hist)
             if slow:
                 data = self.tangent_upper(u, mu_e, lam_e) / theta[0]
-                own = self._cache.get(d)
-                if own is not None:
+                # a requested travel keeps its own factor (for later warm starts); the
+                # walk's intermediate steps share one, refactorized in place
+                own = self._cache.get(d) if d in self._requested else (self._walk[1] if self._walk else None)
+                if own is None and d not in self._requested:
+                    own = _Preconditioner(self._factor(data), ratios, 1.0)
+                    self._walk = (d, own)
+                    pre = own
+                elif own is not None:
                     own.factor.refactor(data)
                     self.n_factorizations += 1
                     own.ratios, own.scale, own.at_equilibrium = ratios, 1.0, False
+                    if d not in self._requested:
+                        self._walk = (d, own)
                     pre = own
                 else:
                     pre = self._cache[d] = _Preconditioner(self._factor(data), ratios, 1.0)

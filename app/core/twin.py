@@ -91,7 +91,7 @@ class SpecimenTwin:
             steps = np.asarray(load_steps_mm if load_steps_mm is not None
                                else np.linspace(max_travel_mm / 8, max_travel_mm, 8), float)
             say(f"solving the neo-Hookean truth in {len(steps)} load steps")
-            hm = HyperelasticModel(fe)
+            hm = HyperelasticModel(fe, warm_starts=False)  # one solve: no equilibria kept per travel
             try:
                 sol = hm.solve(E, nu, steps, cancel=cancel)
             finally:
