@@ -338,8 +338,11 @@ class HyperelasticModel:
                 # bisect: an intermediate load step first (kept out of the result)
                 d_prev = done_d[-1] if done_d else 0.0
                 n_sub += 1
-                if n_sub > 8 * len(depths):
-                    raise ElastoidError(f"the hyperelastic solve failed near {d:g} mm of probe travel") from None
+                if n_sub > 8 * len(depths) or d - d_prev < 1e-3 * min(max_step, d_req):
+                    raise ElastoidError(
+                        f"the hyperelastic solve cannot follow the load path beyond {d_prev:.3g} mm of probe travel "
+                        f"(steps of {d - d_prev:.2g} mm fail: elements beside the probe's edges are close to "
+                        "inverting)") from None
                 todo.insert(0, 0.5 * (d_prev + d))
                 continue
             todo.pop(0)

@@ -71,3 +71,38 @@ def test_tangent_matches_finite_differences_and_small_strain_is_linear():
     sol = hm.solve(E, nu, [1e-4])
     assert sol.force_N[0] / 1e-4 == pytest.approx(g, rel=1e-3)
     hm.free()
+
+
+def test_a_warm_solve_reuses_the_kept_equilibria_and_agrees_with_a_cold_one():
+    """Inside a fit, a solve with nearby moduli starts each travel from the
+    equilibrium the last solve left there: no factorization, and the same answer
+    (to the solver's tolerance) as a fresh model walking the load path."""
+    mesh = cube_mesh(3, size=(10.0, 10.0, 8.0), probe_rect=(2.5, 7.5, 2.5, 7.5),
+                     labels=lambda c: (c[:, 2] > 4).astype(np.int32))
+    fe = build_model(mesh)
+    depths = [0.6, 1.2]
+    warm = HyperelasticModel(fe)
+    warm.solve([10.0, 25.0], 0.45, depths)
+    n_fact = warm.n_factorizations
+    E = [10.5, 24.0]
+    s_warm = warm.solve(E, 0.45, depths)
+    assert warm.n_factorizations == n_fact  # the kept tangents served
+    cold = HyperelasticModel(fe)
+    s_cold = cold.solve(E, 0.45, depths)
+    assert s_warm.force_N == pytest.approx(s_cold.force_N, rel=1e-5)
+    assert np.abs(s_warm.fields - s_cold.fields).max() < 1e-5 * np.abs(s_cold.fields).max()
+    warm.free()
+    cold.free()
+
+
+def test_a_load_path_the_solver_cannot_follow_stops_with_a_clear_message():
+    """Pressed to 70% of its height under a bonded probe, the elements beside the
+    probe's edges invert: the solve gives up with the travel it reached instead
+    of bisecting forever."""
+    from app.core.errors import ElastoidError
+
+    mesh = cube_mesh(4, size=(10.0, 10.0, 8.0), probe_rect=(2.5, 7.5, 2.5, 7.5))
+    hm = HyperelasticModel(build_model(mesh), max_iterations=20)
+    with pytest.raises(ElastoidError, match=r"cannot follow the load path beyond 4\.\d+ mm"):
+        hm.solve([10.0], 0.45, [5.6])
+    hm.free()
