@@ -380,21 +380,47 @@ def fit(problem: EffectProblem, start: dict, *, objective: Callable[[dict], floa
 def fit_hyperelastic(problem: EffectProblem, start: dict, *, rounds: int = 3, rtol: float = 0.01,
                      progress_text: Callable[[str], None] | None = None, cancel=None, **kw) -> FitResult:
     """Fit with the hyperelastic correction refreshed at each round's optimum until
-    the moduli change by less than ``rtol``."""
+    the moduli change by less than ``rtol``.
+
+    Each refresh makes the model the full neo-Hookean one at that round's
+    parameters, and its objective there is the true one; the result is the
+    refreshed point with the best true objective. A round's fit sees the
+    correction frozen at its start; when that moves the moduli far (the
+    correction depends on their ratios), the fixed point it reaches can be worse
+    than where it started: a round whose true objective got worse is retried
+    halfway back (in log-moduli), and the rounds stop when that does not help
+    either."""
+    obj = kw.get("objective")
+
+    def true_value(p):
+        problem.refresh_hyperelastic(p, progress=progress_text, cancel=cancel)
+        return obj(p) if obj else problem.evaluate(p)["total"]
+
     params = problem.complete(start)
-    total_evals, t0, res = 0, time.perf_counter(), None
-    for r in range(rounds):
-        problem.refresh_hyperelastic(params, progress=progress_text, cancel=cancel)
-        res = fit(problem, params, cancel=cancel, **kw)
+    total_evals, t0 = 0, time.perf_counter()
+    best_p, best_v = params, true_value(params)
+    at = best_p  # where the correction was last computed
+    for _ in range(rounds):
+        if at is not best_p:
+            problem.refresh_hyperelastic(best_p, progress=progress_text, cancel=cancel)
+            at = best_p
+        res = fit(problem, best_p, cancel=cancel, **kw)
         total_evals += res.evaluations
-        change = np.max(np.abs(np.log(problem.moduli(res.parameters) / problem.moduli(params))))
-        params = res.parameters
+        cand = res.parameters
+        change = np.max(np.abs(np.log(problem.moduli(cand) / problem.moduli(best_p))))
+        v, at = true_value(cand), cand
+        if v > best_v:  # the frozen correction misled the round: halfway back, refreshed there
+            cand = {k: (math.sqrt(best_p[k] * val) if k in problem.moduli_names else val) for k, val in cand.items()}
+            v, at = true_value(cand), cand
+        if v >= best_v:
+            break  # no progress
+        best_p, best_v = cand, v
         if change < rtol:
             break
-    problem.refresh_hyperelastic(params, cancel=cancel)
-    cost = problem.evaluate(params)
-    obj = kw.get("objective")
-    return FitResult(params, cost, obj(params) if obj else cost["total"], total_evals, time.perf_counter() - t0)
+    if at is not best_p:
+        problem.refresh_hyperelastic(best_p, cancel=cancel)
+    cost = problem.evaluate(best_p)
+    return FitResult(best_p, cost, obj(best_p) if obj else cost["total"], total_evals, time.perf_counter() - t0)
 
 
 def identify_with_effects(problem: EffectProblem, starts_kPa=(10.0, 30.0), *, fixed: dict | None = None,
