@@ -367,13 +367,16 @@ class HyperelasticModel:
         own = self._cache.get(d)
         if own is not None and own.at_equilibrium and _near(ratios, own.ratios, 1.1) and n_it <= 10:
             return
-        data = self.tangent_upper(u, mu_e, lam_e) / theta[0]
-        if own is not None:
-            own.factor.refactor(data)
-            self.n_factorizations += 1
-            own.ratios, own.scale, own.at_equilibrium = ratios, 1.0, True
-        else:
-            self._cache[d] = _Preconditioner(self._factor(data), ratios, 1.0, True)
+        self._cache[d] = self._factor_into(own, self.tangent_upper(u, mu_e, lam_e) / theta[0], ratios, True)
+
+    def _factor_into(self, p: _Preconditioner | None, data, ratios, at_equilibrium: bool) -> _Preconditioner:
+        """``p`` refactorized with the tangent values ``data`` (a new factor if None)."""
+        if p is None:
+            return _Preconditioner(self._factor(data), ratios, 1.0, at_equilibrium)
+        p.factor.refactor(data)
+        self.n_factorizations += 1
+        p.ratios, p.scale, p.at_equilibrium = ratios, 1.0, at_equilibrium
+        return p
 
     def _warm_start(self, d: float, ratios: np.ndarray) -> tuple[np.ndarray, _Preconditioner] | None:
         """The equilibrium and tangent kept at travel ``d`` for nearby ratios, if any."""
@@ -478,20 +481,11 @@ class HyperelasticModel:
                 data = self.tangent_upper(u, mu_e, lam_e) / theta[0]
                 # a requested travel keeps its own factor (for later warm starts); the
                 # walk's intermediate steps share one, refactorized in place
-                own = self._cache.get(d) if d in self._requested else (self._walk[1] if self._walk else None)
-                if own is None and d not in self._requested:
-                    own = _Preconditioner(self._factor(data), ratios, 1.0)
-                    self._walk = (d, own)
-                    pre = own
-                elif own is not None:
-                    own.factor.refactor(data)
-                    self.n_factorizations += 1
-                    own.ratios, own.scale, own.at_equilibrium = ratios, 1.0, False
-                    if d not in self._requested:
-                        self._walk = (d, own)
-                    pre = own
+                if d in self._requested:
+                    pre = self._cache[d] = self._factor_into(self._cache.get(d), data, ratios, False)
                 else:
-                    pre = self._cache[d] = _Preconditioner(self._factor(data), ratios, 1.0)
+                    pre = self._factor_into(self._walk[1] if self._walk else None, data, ratios, False)
+                    self._walk = (d, pre)
                 X, G, hist = [], [], [hist[-1]]
                 self.trace.append((d, "reform"))
             self.n_back_solves += 1

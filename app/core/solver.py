@@ -38,11 +38,7 @@ class Factorized:
             self._ia = (self._U.indptr + 1).astype(np.int32)
             self._ja = (self._U.indices + 1).astype(np.int32)
             self._s = pypardiso.PyPardisoSolver(mtype=2)
-            ip = self._s.iparm  # MKL's defaults (iparm[0] = 0) add two refinement steps to every solve
-            ip[0] = 1  # iparm given
-            ip[1] = 2  # METIS nested dissection
-            ip[7] = 0  # no iterative refinement: Cholesky of an SPD matrix is backward stable
-            ip[34] = 0  # one-based indices
+            _configure(self._s)  # Cholesky of an SPD matrix is backward stable: no refinement
             try:
                 self._s.factorize(self._U)
             except pypardiso.pardiso_wrapper.PyPardisoError as exc:
@@ -58,7 +54,7 @@ class Factorized:
         if HAVE_PARDISO:
             if b.shape[0] != self.shape[0]:
                 raise ValueError(f"right-hand side of {b.shape[0]} rows for a {self.shape[0]}-row matrix")
-            return _back_substitute(self._s, 2, self._U.data, self._ia, self._ja, b)
+            return _pardiso(self._s, 2, 33, self._U.data, self._ia, self._ja, b)
         return self._lu.solve(b)
 
     def free(self) -> None:
@@ -75,9 +71,23 @@ class Factorized:
             pass
 
 
-def _back_substitute(s, mtype: int, data: np.ndarray, ia: np.ndarray, ja: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """PARDISO phase 33 (solve with the factor held by pypardiso solver ``s``) for
-    one right-hand side or the columns of ``b``; ``data`` is in the factor's precision."""
+def _configure(solver, single: bool = False) -> None:
+    """Our PARDISO parameters on a pypardiso solver: given explicitly (MKL's
+    defaults, iparm[0] = 0, add two refinement steps to every solve), METIS
+    ordering, one-based indices, no iterative refinement, double or single precision."""
+    ip = solver.iparm
+    ip[:] = 0
+    ip[0] = 1  # iparm given
+    ip[1] = 2  # METIS nested dissection
+    ip[34] = 0  # one-based indices
+    ip[27] = 1 if single else 0
+
+
+def _pardiso(s, mtype: int, phase: int, data: np.ndarray, ia: np.ndarray, ja: np.ndarray,
+             b: np.ndarray) -> np.ndarray:
+    """One PARDISO call (11 analysis, 22 numeric factorization, 33 solve) on the
+    handle of pypardiso solver ``s``, for one right-hand side or the columns of
+    ``b``; ``data`` is in the factor's precision."""
     import ctypes as ct
 
     from app.core.errors import ElastoidError
@@ -89,7 +99,7 @@ def _back_substitute(s, mtype: int, data: np.ndarray, ia: np.ndarray, ja: np.nda
     nrhs = 1 if b.ndim == 1 else b.shape[1]
     s._mkl_pardiso.argtypes = None  # pypardiso sets double-only argtypes on the shared function
     s._mkl_pardiso(s.pt.ctypes.data_as(ct.POINTER(s._pt_type[0])), ct.byref(ct.c_int32(1)), ct.byref(ct.c_int32(1)),
-                   ct.byref(ct.c_int32(mtype)), ct.byref(ct.c_int32(33)), ct.byref(ct.c_int32(len(ia) - 1)),
+                   ct.byref(ct.c_int32(mtype)), ct.byref(ct.c_int32(phase)), ct.byref(ct.c_int32(len(ia) - 1)),
                    data.ctypes.data_as(ct.c_void_p), ia.ctypes.data_as(i32), ja.ctypes.data_as(i32),
                    s.perm.ctypes.data_as(i32), ct.byref(ct.c_int32(nrhs)), s.iparm.ctypes.data_as(i32),
                    ct.byref(ct.c_int32(0)), b.ctypes.data_as(ct.c_void_p), x.ctypes.data_as(ct.c_void_p),
@@ -116,21 +126,12 @@ class SymmetricFactor:
             self._upper = sp.csr_matrix(upper)
             self._fallback = Factorized(self._upper + sp.triu(self._upper, 1).T)
             return
-        import ctypes
-
         import pypardiso
 
-        self._ct = ctypes
         self.mtype = 2 if definite else -2  # -2: symmetric indefinite (Bunch-Kaufman pivoting)
         self._s = pypardiso.PyPardisoSolver(mtype=self.mtype)
-        self._s._mkl_pardiso.argtypes = None  # we pass float32 arrays in single precision
-        ip = self._s.iparm
-        ip[:] = 0
-        ip[0] = 1  # iparm given
-        ip[1] = 2  # METIS nested dissection
-        ip[9] = 8  # pivot perturbation 1e-8
-        ip[34] = 0  # one-based indices
-        ip[27] = 1 if single else 0
+        _configure(self._s, single)
+        self._s.iparm[9] = 8  # pivot perturbation 1e-8
         self.dtype = np.float32 if single else np.float64
         self._ia = (upper.indptr + 1).astype(np.int32)
         self._ja = (upper.indices + 1).astype(np.int32)
@@ -139,23 +140,7 @@ class SymmetricFactor:
         self._call(22, np.zeros(self.n, self.dtype))
 
     def _call(self, phase: int, b: np.ndarray) -> np.ndarray:
-        ct = self._ct
-        x = np.zeros_like(b)
-        err = ct.c_int32(0)
-        i32 = ct.POINTER(ct.c_int32)
-        s = self._s
-        nrhs = 1 if b.ndim == 1 else b.shape[1]
-        s._mkl_pardiso(s.pt.ctypes.data_as(ct.POINTER(s._pt_type[0])), ct.byref(ct.c_int32(1)),
-                       ct.byref(ct.c_int32(1)), ct.byref(ct.c_int32(self.mtype)), ct.byref(ct.c_int32(phase)),
-                       ct.byref(ct.c_int32(self.n)), self._data.ctypes.data_as(ct.c_void_p),
-                       self._ia.ctypes.data_as(i32), self._ja.ctypes.data_as(i32), s.perm.ctypes.data_as(i32),
-                       ct.byref(ct.c_int32(nrhs)), s.iparm.ctypes.data_as(i32), ct.byref(ct.c_int32(0)),
-                       b.ctypes.data_as(ct.c_void_p), x.ctypes.data_as(ct.c_void_p), ct.byref(err))
-        if err.value != 0:
-            from app.core.errors import ElastoidError
-
-            raise ElastoidError(f"PARDISO failed (error {err.value})")
-        return x
+        return _pardiso(self._s, self.mtype, phase, self._data, self._ia, self._ja, b)
 
     def refactor(self, upper_data: np.ndarray) -> None:
         """New values on the same pattern: numeric factorization only."""
