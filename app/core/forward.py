@@ -142,18 +142,22 @@ class ReducedModel:
         self.max_basis = max_basis
         blocks = [model.term_blocks(t) for t in terms]
         self.A = [b[0] for b in blocks]
-        self.b = [b[1] for b in blocks]
-        self.h = [b[2] for b in blocks]
+        self.b = np.array([b[1] for b in blocks])  # (Q, n): one right-hand side per term
+        self.h = np.array([b[2] for b in blocks])
         self.c = np.array([b[3] for b in blocks])
         n, Q = len(model.free), len(terms)
-        self._V = np.zeros((n, max_basis))
-        self._AV = np.zeros((Q, n, max_basis))
-        self._Qw = np.zeros((n, Q * (max_basis + 1)))
+        # vectors are stored as rows (contiguous), so the projections are fast BLAS calls
+        self._Vt = np.zeros((max_basis, n))
+        self._AVt = np.zeros((Q, max_basis, n))
+        self._Qwt = np.zeros((Q * (max_basis + 1), n))
         self._Rw = np.zeros((Q * (max_basis + 1), Q * (max_basis + 1)))
         self._nw = 0
         self.k = 0
-        for q in range(Q):
-            self._push_residual_column(self.b[q])
+        # the reduced operator, grown by a row and a column per basis vector
+        self._Ar = np.zeros((Q, max_basis, max_basis))
+        self._br = np.zeros((Q, max_basis))
+        self._hr = np.zeros((Q, max_basis))
+        self._push_residual_columns(self.b)
         self._prec = None
         self.n_full_solves = 0
         self.n_back_solves = 0
@@ -161,21 +165,25 @@ class ReducedModel:
 
     @property
     def V(self) -> np.ndarray:
-        return self._V[:, : self.k]
+        return self._Vt[: self.k].T
 
     # --- offline ------------------------------------------------------------
-    def _push_residual_column(self, w: np.ndarray) -> None:
-        j = self._nw
-        Qw = self._Qw[:, :j]
-        r1 = Qw.T @ w
-        w = w - Qw @ r1
-        r2 = Qw.T @ w
-        w = w - Qw @ r2
-        nrm = np.linalg.norm(w)
-        self._Rw[:j, j] = r1 + r2
-        self._Rw[j, j] = nrm
-        self._Qw[:, j] = w / nrm if nrm > 0 else 0.0
-        self._nw += 1
+    def _push_residual_columns(self, W: np.ndarray) -> None:
+        """Append the columns (rows of ``W``) to the orthonormal residual basis and its
+        triangular factor by block classical Gram-Schmidt with reorthogonalization
+        (BCGS2: each pass projects the whole block against the basis in one sweep over
+        it, then orthonormalizes inside the block by a QR)."""
+        j, m = self._nw, len(W)
+        Qwt = self._Qwt[:j]
+        W = np.asarray(W, float)
+        S1 = Qwt @ W.T
+        Q1, T1 = np.linalg.qr((W - S1.T @ Qwt).T)
+        S2 = Qwt @ Q1
+        Q2, T2 = np.linalg.qr((Q1.T - S2.T @ Qwt).T)
+        self._Rw[:j, j : j + m] = S1 + S2 @ T1
+        self._Rw[j : j + m, j : j + m] = T2 @ T1
+        self._Qwt[j : j + m] = Q2.T
+        self._nw += m
 
     def _matrix(self, theta):
         A = self.A[0] * theta[0]
@@ -192,26 +200,32 @@ class ReducedModel:
             self.n_full_solves += 1
 
     def _add(self, v) -> bool:
-        V = self.V
+        Vt = self._Vt[: self.k]
         for _ in range(2):  # twice is enough (Kahan)
-            v = v - V @ (V.T @ v)
+            v = v - (Vt @ v) @ Vt
         nv = np.linalg.norm(v)
         if nv == 0 or self.k >= self.max_basis:
             return False
         v = v / nv
-        self._V[:, self.k] = v
+        k = self.k
+        self._Vt[k] = v
         for q, A in enumerate(self.A):
-            self._AV[q, :, self.k] = A @ v
-            self._push_residual_column(self._AV[q, :, self.k])
+            self._AVt[q, k] = A @ v
+        self._push_residual_columns(self._AVt[:, k])
+        # the new row and column of each reduced matrix: O(n k), not O(n k^2)
+        self._Ar[:, : k + 1, k] = self._AVt[:, k] @ self._Vt[: k + 1].T
+        self._Ar[:, k, :k] = self._AVt[:, :k] @ v
+        self._br[:, k] = self.b @ v
+        self._hr[:, k] = self.h @ v
         self.k += 1
         self._update_reduced()
         return True
 
     def _update_reduced(self):
-        k, V = self.k, self.V
-        self.Ar = np.einsum("ni,qnj->qij", V, self._AV[:, :, :k], optimize=True) if k else np.zeros((len(self.A), 0, 0))
-        self.br = np.stack([V.T @ b for b in self.b])
-        self.hr = np.stack([V.T @ h for h in self.h])
+        k = self.k
+        self.Ar = self._Ar[:, :k, :k]
+        self.br = self._br[:, :k]
+        self.hr = self._hr[:, :k]
         self._R = self._Rw[: self._nw, : self._nw]
 
     def train(self, thetas: np.ndarray, progress=None):
@@ -235,7 +249,7 @@ class ReducedModel:
     def _enrich(self, theta) -> bool:
         a = self.coords(theta, check=False)
         k = self.k
-        r = sum(t * (b - AV[:, :k] @ a) for t, b, AV in zip(theta, self.b, self._AV))
+        r = sum(t * (b - a @ AVt[:k]) for t, b, AVt in zip(theta, self.b, self._AVt))
         self.n_back_solves += 1
         return self._add(self._prec.solve(r))
 

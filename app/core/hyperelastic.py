@@ -128,6 +128,12 @@ class HyperelasticSolution:
         return np.where(x > d[-1], F[-1] + k_end * (x - d[-1]), out)
 
 
+# a load step this much shorter than the longest one that still fails means the
+# path is blocked (elements at the probe's edges about to invert); bisecting
+# further only spends time (on the demo, 90 s down to 1e-3 before giving up)
+MIN_STEP_FRACTION = 1.0 / 64
+
+
 class _StepFailed(Exception):
     """A load step did not converge (or its predictor inverted an element)."""
 
@@ -338,7 +344,7 @@ class HyperelasticModel:
                 # bisect: an intermediate load step first (kept out of the result)
                 d_prev = done_d[-1] if done_d else 0.0
                 n_sub += 1
-                if n_sub > 8 * len(depths) or d - d_prev < 1e-3 * min(max_step, d_req):
+                if n_sub > 8 * len(depths) or d - d_prev < MIN_STEP_FRACTION * min(max_step, d_req):
                     raise ElastoidError(
                         f"the hyperelastic solve cannot follow the load path beyond {d_prev:.3g} mm of probe travel "
                         f"(steps of {d - d_prev:.2g} mm fail: elements beside the probe's edges are close to "

@@ -41,12 +41,15 @@ _POOLS: ThreadpoolController | None = None
 
 
 def single_threaded_blas():
-    """Context capping BLAS at one thread: in these small products idle BLAS threads
-    only steal the cores (the controller is built once: building it scans the process)."""
+    """Context capping numpy's BLAS (OpenBLAS) at one thread: in these small products
+    its idle threads only spin and steal the cores. MKL, which here serves only
+    PARDISO, keeps its threads (capping it too made the reduced-basis training's
+    back-substitutions 2x slower). The controller is built once: building it
+    scans the process."""
     global _POOLS
     if _POOLS is None:
-        _POOLS = ThreadpoolController()
-    return _POOLS.limit(limits=1, user_api="blas")
+        _POOLS = ThreadpoolController().select(internal_api=["openblas", "blis"])
+    return _POOLS.limit(limits=1)
 
 
 @dataclass(frozen=True)

@@ -107,25 +107,27 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px: float, rad
         if r.size < 6:
             return None
 
-        def pattern(weights) -> np.ndarray:
+        def patterns(weights: list) -> np.ndarray:
             """Model change (px, flattened like r) per unit relative stiffening of the
-            tissue at the quadrature points with these weights (m, q)."""
-            rows = np.flatnonzero(weights.any(axis=1))
-            if len(rows) == 0:
-                return np.zeros_like(r)
-            g = np.bincount(dofs[rows].ravel(), weights=np.einsum("mq,mqk->mk", weights[rows], fq[rows]).ravel(),
-                            minlength=space.n_dofs)
-            du = np.zeros(space.n_dofs)
-            du[fe.free] = -fac.solve(g[fe.free])
+            tissue at the quadrature points with each of these weights (m, q): one
+            column each, from one multi-right-hand-side solve (about 5x cheaper per
+            column than one at a time)."""
+            g = np.zeros((space.n_dofs, len(weights)))
+            for j, wts in enumerate(weights):
+                rows = np.flatnonzero(wts.any(axis=1))
+                g[:, j] = np.bincount(dofs[rows].ravel(), weights=np.einsum("mq,mqk->mk", wts[rows], fq[rows]).ravel(),
+                                      minlength=space.n_dofs)
+            du = np.zeros((space.n_dofs, len(weights)))
+            du[fe.free] = -fac.solve(g[fe.free]).reshape(len(fe.free), -1)
             out = []
             for P, dd in ops:
-                d = (P @ du).reshape(-1, 3)
-                out.append(dd * np.column_stack([d @ problem._lat / problem._sc, -d[:, 2] / problem._sr]))
-            return np.concatenate(out).ravel()
+                d = (P @ du).reshape(-1, 3, len(weights))  # (points, xyz, columns)
+                lateral = np.einsum("pkc,k->pc", d, problem._lat) / problem._sc
+                out.append(dd * np.stack([lateral, -d[:, 2] / problem._sr], axis=1))  # (points, 2, columns)
+            return np.concatenate(out).reshape(-1, len(weights))
 
         # what the described regions' moduli can already do
-        R = np.column_stack([pattern(np.repeat((lab == k)[:, None], len(QUAD_W), 1).astype(float))
-                             for k in range(len(E))])
+        R = patterns([np.repeat((lab == k)[:, None], len(QUAD_W), 1).astype(float) for k in range(len(E))])
         Q, _ = np.linalg.qr(R)
         r_perp = r - Q @ (Q.T @ r)
 
@@ -135,25 +137,33 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px: float, rad
             radii_mm = sorted({max(1.5, 0.06 * size.min()), 0.1 * size.min(), 0.15 * size.min()})
         step = max(tracked.block_px * min(problem._sc, problem._sr), 0.04 * size.min())
         y = float(exp.probe.center_mm[1])
-        best = None
+        spheres = []
         for rad in radii_mm:
             for x in np.arange(lo[0], hi[0] + 1e-9, step):
                 for z in np.arange(lo[2], hi[2] + 1e-9, step):
-                    if cancel is not None and cancel.is_set():
-                        raise Cancelled("inclusion scan cancelled")
-                    c = np.clip([x, y, z], rad + 0.5, size - rad - 0.5)
-                    w = (np.linalg.norm(xq - c, axis=2) < rad).astype(float)
-                    if w.sum() < 1:
-                        continue
-                    J = pattern(w)
-                    J = J - Q @ (Q.T @ J)
-                    jj = float(J @ J)
-                    if jj <= 0:
-                        continue
-                    amp = float(J @ r_perp) / jj
-                    gain = amp * amp * jj  # px^2 of misfit explained
-                    if best is None or gain > best[0]:
-                        best = (gain, c, rad, amp)
+                    spheres.append((np.clip([x, y, z], rad + 0.5, size - rad - 0.5), rad))
+        best = None
+        for k0 in range(0, len(spheres), 32):
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("inclusion scan cancelled")
+            chunk, ws = [], []
+            for c, rad in spheres[k0 : k0 + 32]:
+                w = (np.linalg.norm(xq - c, axis=2) < rad).astype(float)
+                if w.sum() >= 1:
+                    chunk.append((c, rad))
+                    ws.append(w)
+            if not ws:
+                continue
+            J = patterns(ws)
+            J = J - Q @ (Q.T @ J)
+            for (c, rad), Jc in zip(chunk, J.T):
+                jj = float(Jc @ Jc)
+                if jj <= 0:
+                    continue
+                amp = float(Jc @ r_perp) / jj
+                gain = amp * amp * jj  # px^2 of misfit explained
+                if best is None or gain > best[0]:
+                    best = (gain, c, rad, amp)
     finally:
         fac.free()
     if best is None:

@@ -260,11 +260,27 @@ class EffectProblem(Problem):
         u_lin = self.rm.full_field(a)
         self._hyper = _HyperState(E, g, steps, sol.force_N, {}, sol)
         self._u_lin_ref = u_lin
+        self._complete_corrections()
+
+    def hyperelastic_state(self):
+        """The current nonlinear correction (to put back with :meth:`restore_hyperelastic`)."""
+        return self._hyper, getattr(self, "_u_lin_ref", None)
+
+    def restore_hyperelastic(self, state) -> None:
+        """Put back a correction taken by :meth:`hyperelastic_state` (points added
+        since get theirs computed)."""
+        self._hyper, self._u_lin_ref = state
+        if self._hyper is not None:
+            self._complete_corrections()
+
+    def _complete_corrections(self) -> None:
+        """The correction at the control points and every named point set that lacks one."""
         if self._ctrl_P is None:
             self._ctrl_P = interpolation_matrix(self.fe.space, self.ctrl_world)
-        self._hyper.corrections["__ctrl__"] = self._hyper_correction(self._ctrl_P)
-        for name, (_, _, P) in self._points.items():
-            self._hyper.corrections[name] = self._hyper_correction(P)
+        sets = {"__ctrl__": self._ctrl_P, **{name: P for name, (_, _, P) in self._points.items()}}
+        for name, P in sets.items():
+            if name not in self._hyper.corrections:
+                self._hyper.corrections[name] = self._hyper_correction(P)
 
     def _hyper_correction(self, P) -> np.ndarray:
         h = self._hyper
@@ -377,6 +393,29 @@ def fit(problem: EffectProblem, start: dict, *, objective: Callable[[dict], floa
     return FitResult(p, cost, val if objective is not None else cost["total"], count[0], time.perf_counter() - t0)
 
 
+WARM_REACH = 1.45  # a round moves the moduli ratios by at most this factor (the solver's warm starts reach 1.5)
+
+
+def _within_warm_reach(problem: EffectProblem, start: dict, cand: dict) -> dict:
+    """``cand`` pulled back towards ``start`` along the step in log-moduli so that
+    no ratio of moduli changes by more than WARM_REACH: the refresh there then
+    starts from the equilibria the last solve left (about 2 s at paper size)
+    instead of walking the load path again (about 25 s). A round whose frozen
+    correction sends the moduli far is trusted only that far."""
+    names = problem.moduli_names
+    if len(names) < 2:
+        return cand
+    step = np.log(problem.moduli(cand) / problem.moduli(start))
+    reach = np.max(np.abs(step[1:] - step[0]))
+    if reach <= math.log(WARM_REACH):
+        return cand
+    s = math.log(WARM_REACH) / reach
+    out = dict(cand)
+    for k, name in enumerate(names):
+        out[name] = float(start[name] * math.exp(s * step[k]))
+    return out
+
+
 def fit_hyperelastic(problem: EffectProblem, start: dict, *, rounds: int = 3, rtol: float = 0.01,
                      progress_text: Callable[[str], None] | None = None, cancel=None, **kw) -> FitResult:
     """Fit with the hyperelastic correction refreshed at each round's optimum until
@@ -387,9 +426,10 @@ def fit_hyperelastic(problem: EffectProblem, start: dict, *, rounds: int = 3, rt
     refreshed point with the best true objective. A round's fit sees the
     correction frozen at its start; when that moves the moduli far (the
     correction depends on their ratios), the fixed point it reaches can be worse
-    than where it started: a round whose true objective got worse is retried
-    halfway back (in log-moduli), and the rounds stop when that does not help
-    either."""
+    than where it started: a round moves the ratios of the moduli by at most
+    WARM_REACH (so the refresh is a warm solve), a round whose true objective got
+    worse is retried halfway back (in log-moduli), and the rounds stop when that
+    does not help either."""
     obj = kw.get("objective")
 
     def true_value(p):
@@ -399,14 +439,15 @@ def fit_hyperelastic(problem: EffectProblem, start: dict, *, rounds: int = 3, rt
     params = problem.complete(start)
     total_evals, t0 = 0, time.perf_counter()
     best_p, best_v = params, true_value(params)
+    best_state = problem.hyperelastic_state()  # the correction computed at best_p (kept, not solved again)
     at = best_p  # where the correction was last computed
     for _ in range(rounds):
         if at is not best_p:
-            problem.refresh_hyperelastic(best_p, progress=progress_text, cancel=cancel)
+            problem.restore_hyperelastic(best_state)
             at = best_p
         res = fit(problem, best_p, cancel=cancel, **kw)
         total_evals += res.evaluations
-        cand = res.parameters
+        cand = _within_warm_reach(problem, best_p, res.parameters)
         change = np.max(np.abs(np.log(problem.moduli(cand) / problem.moduli(best_p))))
         v, at = true_value(cand), cand
         if v > best_v:  # the frozen correction misled the round: halfway back, refreshed there
@@ -414,11 +455,11 @@ def fit_hyperelastic(problem: EffectProblem, start: dict, *, rounds: int = 3, rt
             v, at = true_value(cand), cand
         if v >= best_v:
             break  # no progress
-        best_p, best_v = cand, v
+        best_p, best_v, best_state = cand, v, problem.hyperelastic_state()
         if change < rtol:
             break
     if at is not best_p:
-        problem.refresh_hyperelastic(best_p, cancel=cancel)
+        problem.restore_hyperelastic(best_state)
     cost = problem.evaluate(best_p)
     return FitResult(best_p, cost, obj(best_p) if obj else cost["total"], total_evals, time.perf_counter() - t0)
 
