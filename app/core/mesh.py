@@ -74,9 +74,7 @@ class TetMesh:
     def probe_nodes(self, points: np.ndarray | None = None, tol: float = 1e-6) -> np.ndarray:
         """Mask of points on the top face inside the probe face (outline included)."""
         p = self.points_mm if points is None else points
-        x0, x1, y0, y1 = self.probe_rect_mm
-        return (np.abs(p[:, 2] - self.size_mm[2]) < tol) & (p[:, 0] >= x0 - tol) & (p[:, 0] <= x1 + tol) \
-            & (p[:, 1] >= y0 - tol) & (p[:, 1] <= y1 + tol)
+        return probe_face_mask(p, self.size_mm, self.probe_rect_mm, tol)
 
 
 @dataclass(frozen=True)
@@ -255,6 +253,38 @@ def cache_dir() -> Path:
     return d
 
 
+def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
+    """Run fTetWild on ``args`` in a child process; (V, T), or MeshingError/Cancelled."""
+    import queue as _q
+    import time
+
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_tetwild_job, args=(args, queue), daemon=True)
+    proc.start()
+    t0 = time.monotonic()
+    result = None
+    try:
+        while result is None:
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("meshing cancelled")
+            try:
+                result = queue.get(timeout=0.1)
+            except _q.Empty:
+                if not proc.is_alive():
+                    raise MeshingError(f"the mesher stopped unexpectedly (exit code {proc.exitcode})") from None
+                if time.monotonic() - t0 > timeout_s:
+                    raise MeshingError(f"meshing took longer than {timeout_s:.0f} s") from None
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+        proc.join(timeout=5)
+    status, V, T = result
+    if status != "ok":
+        raise MeshingError(f"fTetWild failed: {V}")
+    return V, T
+
+
 def build_mesh(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: MeshSettings = MeshSettings(),
                *, progress: Callable[[str], None] | None = None, cancel: threading.Event | None = None,
                use_cache: bool = True, timeout_s: float = 600.0) -> TetMesh:
@@ -278,39 +308,20 @@ def build_mesh(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: Me
     bg_v, bg_t, bg_h = sizing_field(size_mm, probe_rect_mm, settings, regions)
     if progress:
         progress(f"meshing: {len(f)} input triangles")
-    ctx = mp.get_context("spawn")
-    queue = ctx.Queue()
     # one thread: fTetWild's multi-threaded runs differ from run to run, and a
     # scientific result must not depend on thread timing
     threads = int(os.environ.get("ELASTOID_MESH_THREADS", "1"))
-    proc = ctx.Process(target=_tetwild_job, args=((v, f, bg_v, bg_t, bg_h, settings.edge_mm, settings.epsilon, threads), queue),
-                       daemon=True)
-    proc.start()
-    import queue as _q
-    import time
-
-    t0 = time.monotonic()
-    result = None
-    try:
-        while result is None:
-            if cancel is not None and cancel.is_set():
-                raise Cancelled("meshing cancelled")
-            try:
-                result = queue.get(timeout=0.1)
-            except _q.Empty:
-                if not proc.is_alive():
-                    raise MeshingError(f"the mesher stopped unexpectedly (exit code {proc.exitcode})") from None
-                if time.monotonic() - t0 > timeout_s:
-                    raise MeshingError(f"meshing took longer than {timeout_s:.0f} s") from None
-    finally:
-        if proc.is_alive():
-            proc.terminate()
-        proc.join(timeout=5)
-    status, V, T = result
-    if status != "ok":
-        raise MeshingError(f"fTetWild failed: {V}")
-    V, T = _orient_and_clean(V, T)
-    V = snap_to_probe_outline(V, T, size_mm, probe_rect_mm, 0.4 * settings.probe_edge_mm)
+    args = (v, f, bg_v, bg_t, bg_h, settings.edge_mm, settings.epsilon, threads)
+    # fTetWild sometimes loses part of the imprinted probe outline (a face edge
+    # with no vertex within snapping reach): mesh again, up to three times
+    for attempt in range(3):
+        V, T = _tetwild(args, cancel, timeout_s)
+        V, T = _orient_and_clean(V, T)
+        V = snap_to_probe_outline(V, T, size_mm, probe_rect_mm, 0.4 * settings.probe_edge_mm)
+        if _outline_resolved(V, size_mm, probe_rect_mm) or attempt == 2:
+            break
+        if progress:
+            progress("the mesh lost part of the probe face outline; meshing again")
     labels = paint_labels(V[T].mean(axis=1), regions)
     mesh = TetMesh(V, T, labels, names, size_mm, tuple(probe_rect_mm))
     missing = [n for k, n in enumerate(names) if not np.any(labels == k)]
@@ -323,6 +334,23 @@ def build_mesh(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: Me
     if progress:
         progress(f"mesh: {mesh.n_nodes} nodes, {mesh.n_tets} tetrahedra")
     return mesh
+
+
+def probe_face_mask(p: np.ndarray, size_mm, rect, tol: float = 1e-6) -> np.ndarray:
+    """Mask of points on the top face inside the probe face (outline included)."""
+    x0, x1, y0, y1 = rect
+    return (np.abs(p[:, 2] - size_mm[2]) < tol) & (p[:, 0] >= x0 - tol) & (p[:, 0] <= x1 + tol) \
+        & (p[:, 1] >= y0 - tol) & (p[:, 1] <= y1 + tol)
+
+
+def _outline_resolved(V: np.ndarray, size_mm, rect, tol: float = 1e-6) -> bool:
+    """Whether vertices on the top face lie on all four edges of the probe face."""
+    x0, x1, y0, y1 = rect
+    p = V[probe_face_mask(V, size_mm, rect, tol)]
+    if len(p) == 0:
+        return False
+    return bool(np.isclose(p[:, 0].min(), x0) and np.isclose(p[:, 0].max(), x1)
+                and np.isclose(p[:, 1].min(), y0) and np.isclose(p[:, 1].max(), y1))
 
 
 def snap_to_probe_outline(V: np.ndarray, T: np.ndarray, size_mm, rect, tol: float) -> np.ndarray:
