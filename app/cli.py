@@ -190,8 +190,12 @@ def cmd_diagnose(args) -> int:
 def cmd_simulate(args) -> int:
     from app.core.geometry import Region
     from app.core.mesh import MeshSettings
-    from app.core.simulate import SyntheticSpec, simulate_experiment
+    from app.core.simulate import DEMO_SPEC, SyntheticSpec, simulate_experiment
 
+    say = (lambda s: print(s, file=sys.stderr)) if not args.quiet else None
+    if args.demo:
+        print(simulate_experiment(args.output, DEMO_SPEC, progress=say, overwrite=args.overwrite))
+        return 0
     size = tuple(_floats(args.size_mm, 3, "--size-mm"))
     regions = [Region("B", "background")]
     moduli = _moduli(args.moduli)
@@ -231,7 +235,6 @@ def cmd_simulate(args) -> int:
                          truth_mesh_scale=args.truth_mesh_scale,
                          effects=effects, hidden_regions=tuple(hidden), g1=args.g1, tau1_s=args.tau1_s,
                          nu=args.nu)
-    say = (lambda s: print(s, file=sys.stderr)) if not args.quiet else None
     out = simulate_experiment(args.output, spec, progress=say, overwrite=args.overwrite)
     print(out)
     return 0
@@ -302,6 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--g1", type=float, default=0.3, help="viscoelastic truth: relaxing fraction")
     sp.add_argument("--tau1-s", type=float, default=2.0, help="viscoelastic truth: relaxation time, s")
     sp.add_argument("--nu", type=float, default=0.49, help="Poisson's ratio of the truth")
+    sp.add_argument("--demo", action="store_true",
+                    help="write the bundled demo experiment (its fixed settings; the options above are ignored)")
     sp.add_argument("--overwrite", action="store_true")
     sp.add_argument("--quiet", action="store_true")
     sp.set_defaults(func=cmd_simulate)

@@ -53,9 +53,21 @@ class SyntheticSpec:
     tau1_s: float = 2.0  # viscoelastic: relaxation time
     hidden_regions: tuple = ()  # inclusion: regions in the truth but not in experiment.toml (moduli in moduli_kPa)
     load_steps: int = 8  # hyperelastic: load steps of the truth's neo-Hookean solve
+    notes: str | None = None  # experiment.toml notes (default: "simulated by ElastoID (seed N)")
 
     def with_(self, **kw) -> "SyntheticSpec":
         return replace(self, **kw)
+
+
+#: The bundled demo (resources/demo): ``elastoid simulate --demo resources/demo --overwrite``
+#: writes it again (the truth mesh is fTetWild's, so the frames differ slightly run to run).
+DEMO_SPEC = SyntheticSpec(
+    name="Demo: gelatin phantom with a stiff inclusion (synthetic, after the paper)",
+    notes=("Synthetic twin of the paper phantom: 90 x 90 x 96 mm, inclusion A (63 kPa) in tissue B (18 kPa), "
+           "probe pressed 14.8 mm. Frames from the scatterer simulator, truth on a finer mesh (truth.toml)."),
+    reference_method="simulation truth, in place of the paper rheometer values",
+    seed=7,
+)
 
 
 def _template(spec: SyntheticSpec) -> Experiment:
@@ -68,7 +80,7 @@ def _template(spec: SyntheticSpec) -> Experiment:
     return Experiment(name=spec.name, specimen=Specimen(tuple(spec.size_mm), tuple(spec.regions)),
                       probe=Probe(tuple(spec.face_mm), tuple(center), (1.0, 0.0, 0.0)), imaging=imaging,
                       frames=(), force_log=ForceLog(np.zeros(2), np.zeros(2), np.zeros(2)),
-                      notes=f"simulated by ElastoID (seed {spec.seed})")
+                      notes=spec.notes or f"simulated by ElastoID (seed {spec.seed})")
 
 
 def protocol(spec: SyntheticSpec) -> tuple[np.ndarray, np.ndarray]:
