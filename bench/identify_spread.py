@@ -1,5 +1,6 @@
 """Identification across fresh meshes (fTetWild is not deterministic): joint and NMI-only fits
-of synthetic experiments from tests/core/synthetic.py, each on N freshly meshed copies.
+of synthetic experiments from tests/core/synthetic.py, each on N freshly meshed copies
+(the committed experiments of tests/data/experiments when they exist).
 
     python bench/identify_spread.py smooth medium-sphere:1,medium-ellipsoid:3 2
 """
@@ -15,9 +16,11 @@ if __name__ == "__main__":
     from app.core.identify import Problem, identify, PAPER_STARTS_KPA
     from app.core.mesh import specimen_mesh
     for geom, seed in cases:
-        folder = Path(tempfile.gettempdir()) / f"elastoid-bench-{geom}-{seed}"
-        if not folder.exists():
-            synthetic.make(folder, geom, int(seed))
+        folder = synthetic.COMMITTED / f"{geom}-seed{seed}"  # the tests' experiment, when committed
+        if not (folder / "experiment.toml").is_file():
+            folder = Path(tempfile.gettempdir()) / f"elastoid-bench-{geom}-{seed}"
+            if not folder.exists():
+                synthetic.make(folder, geom, int(seed))
         exp = read_experiment(folder)
         truth = synthetic.GEOMETRIES[geom]["moduli_kPa"]; R = truth["A"] / truth["B"]
         for k in range(nmesh):

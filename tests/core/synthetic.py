@@ -39,3 +39,20 @@ GEOMETRIES["medium-ellipsoid"] = dict(
 def make(folder: Path, geometry: str, seed: int, **overrides) -> tuple[Path, SyntheticSpec]:
     spec = SyntheticSpec(seed=seed, **{**COMMON, **GEOMETRIES[geometry], **overrides})
     return simulate_experiment(folder, spec, overwrite=True), spec
+
+
+COMMITTED = Path(__file__).resolve().parents[1] / "data" / "experiments"
+COMMITTED_CASES = (("medium-sphere", 1), ("medium-sphere", 2), ("medium-ellipsoid", 3))
+
+
+def committed(geometry: str, seed: int) -> Path:
+    """The committed experiment made by :func:`make` (tests/data/experiments)."""
+    folder = COMMITTED / f"{geometry}-seed{seed}"
+    if not (folder / "experiment.toml").is_file():
+        raise FileNotFoundError(f"{folder}: not committed; write it with `python -m tests.core.synthetic`")
+    return folder
+
+
+if __name__ == "__main__":  # python -m tests.core.synthetic: write the committed experiments again
+    for g, s in COMMITTED_CASES:
+        print(make(COMMITTED / f"{g}-seed{s}", g, s)[0])

@@ -9,33 +9,39 @@ import pytest
 from app.core.errors import Cancelled
 from app.core.experiment import read_experiment
 from app.core.identify import Problem, identify
+from app.core.simulate import read_truth
 from tests.core import synthetic
 
-CASES = [("medium-sphere", 1), ("medium-sphere", 2), ("medium-ellipsoid", 3)]
-# Each run meshes anew and fTetWild's meshes differ from run to run (it is not
-# deterministic even on one thread), so every CI run samples the mesh-to-mesh
-# spread. Measured: E_A of the medium sphere (seed 1) at +3.3%, 0.0%
-# (bench/identify_spread.py) and -5.5% (one CI run), the others within 1%. The
-# issue asks for 5%; the worst mesh seen misses it by half a percent, so the test
-# holds 7.5% and the spread is reported in docs/method.md.
-TOL = 0.075
+CASES = synthetic.COMMITTED_CASES
+# The experiments and their identification meshes are committed
+# (tests/data/experiments, tests/data/meshes): fTetWild is not deterministic, so
+# fresh meshes made every CI run a different problem. On fresh meshes the six
+# starts once split between two optima 3% apart in the ratio (3 and 3), and the
+# medium sphere's E_A came out at +3.3%, 0.0% and -5.5% on three meshes: that
+# spread is measured by bench/identify_spread.py and written up in
+# docs/method.md, not sampled here. On the committed meshes the worst error is
+# 3.6% (the NMI-only ratio of the medium sphere, seed 1).
+TOL = 0.05
 
 
 @pytest.fixture(scope="module", params=CASES, ids=[f"{g}-seed{s}" for g, s in CASES])
-def case(request, tmp_path_factory):
+def case(request):
+    # the experiments are committed (simulating one takes 50-70 s: a 50k-tet truth
+    # mesh and its solve); `python -m tests.core.synthetic` writes them again. The
+    # identification meshes come from tests/data/meshes (seeded by tests/conftest.py).
     geometry, seed = request.param
-    folder, spec = synthetic.make(tmp_path_factory.mktemp(f"{geometry}{seed}") / "exp", geometry, seed)
+    folder = synthetic.committed(geometry, seed)
     exp = read_experiment(folder)
     joint = Problem.from_experiment(exp, cost="joint")
     nmi = Problem(exp, joint.mesh, joint.fe, joint.rm, nu=0.49, cost="nmi", frames=joint.frames,
                   roi_px=None, force_weight=1.0, bins=joint.bins)
-    return spec, joint, nmi
+    return read_truth(folder)["moduli_kPa"], joint, nmi
 
 
 def test_joint_cost_recovers_every_modulus_within_5_percent(case):
-    spec, joint, _ = case
+    truth_kPa, joint, _ = case
     result = identify(joint)  # the paper's six starts
-    for region, truth in spec.moduli_kPa.items():
+    for region, truth in truth_kPa.items():
         got = result.parameters[f"E_{region}_kPa"]
         assert abs(got / truth - 1) < TOL, (region, got, truth)
     # most starts reach the chosen optimum (with hard bins and no restarts they
@@ -48,10 +54,10 @@ def test_joint_cost_recovers_every_modulus_within_5_percent(case):
 
 
 def test_nmi_cost_recovers_the_ratio_but_not_the_level(case):
-    spec, _, nmi = case
+    truth_kPa, _, nmi = case
     result = identify(nmi)  # the paper's six starts
     p = result.parameters
-    ratio, truth = p["E_A_kPa"] / p["E_B_kPa"], spec.moduli_kPa["A"] / spec.moduli_kPa["B"]
+    ratio, truth = p["E_A_kPa"] / p["E_B_kPa"], truth_kPa["A"] / truth_kPa["B"]
     assert abs(ratio / truth - 1) < TOL, (ratio, truth)
     # the identifiability report says why the level is not found
     ident = result.identifiability
