@@ -60,7 +60,13 @@ class TrackedPair:
 class TrackedField:
     pairs: tuple[TrackedPair, ...]
     block_px: int
-    noise_px: float  # estimated tracking noise per displacement component
+    noise_px: float  # tracking noise per displacement component, RMS over the pairs
+    # each pair's own (a frame further from the source in strain decorrelates more)
+    pair_noise_px: tuple[float, ...] = ()
+
+    def pair_noise(self, k: int) -> float:
+        """The tracking noise of pair ``k`` (the pooled one when it has none of its own)."""
+        return self.pair_noise_px[k] if k < len(self.pair_noise_px) else self.noise_px
 
     @property
     def n_valid(self) -> int:
@@ -174,9 +180,11 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
     res = [p.residual_px[p.valid] for p in pairs]
     grids = [p.grid_index[p.valid] for p in pairs]
     sig = [robust_noise(r, g) for r, g in zip(res, grids)]
-    sig = [s for s in sig if np.isfinite(s)]
-    noise = float(np.sqrt(np.mean(np.square(sig)))) if sig else 0.25
-    return TrackedField(tuple(pairs), b, max(noise, 0.02))
+    known = [s for s in sig if np.isfinite(s)]
+    noise = max(float(np.sqrt(np.mean(np.square(known)))) if known else 0.25, 0.02)
+    # a pair too small to estimate its own noise takes the pooled estimate
+    per_pair = tuple(max(s, 0.02) if np.isfinite(s) else noise for s in sig)
+    return TrackedField(tuple(pairs), b, noise, per_pair)
 
 
 # ---------------------------------------------------------------------------

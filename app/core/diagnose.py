@@ -58,19 +58,31 @@ HUBER_C = 2.0
 class NoiseModel:
     force_sigma_N: float
     n_force: int
-    displacement_sigma_px: float
+    displacement_sigma_px: float  # RMS over the frame pairs
     n_displacement: int  # scalar components (2 per valid block and frame pair)
     huber: float = HUBER_C
+    # each frame pair's own tracking noise: speckle decorrelates with the strain
+    # between the frames, so a frame far from the source is tracked less precisely
+    # and its blocks weigh less (empty: every pair has displacement_sigma_px)
+    pair_sigma_px: tuple[float, ...] = ()
 
     @property
     def n(self) -> int:
         return self.n_force + self.n_displacement
 
+    def sigma_px(self, k: int) -> float:
+        """The tracking noise of frame pair ``k``."""
+        return self.pair_sigma_px[k] if k < len(self.pair_sigma_px) else self.displacement_sigma_px
+
     def describe(self) -> str:
+        if len(self.pair_sigma_px) > 1:
+            per = ", ".join(f"{s:.3g}" for s in self.pair_sigma_px)
+            img = f"independent noise per component of {per} px in the {len(self.pair_sigma_px)} frame pairs"
+        else:
+            img = f"independent {self.displacement_sigma_px:.3g} px noise per component"
         return (f"force: independent Gaussian noise of {self.force_sigma_N:.3g} N on each of {self.n_force} samples "
-                f"(estimated from the log); images: {self.n_displacement // 2} tracked blocks, independent "
-                f"{self.displacement_sigma_px:.3g} px noise per component (estimated from the blocks), "
-                f"Huber loss beyond {self.huber:g} sigma")
+                f"(estimated from the log); images: {self.n_displacement // 2} tracked blocks, {img} "
+                f"(estimated from the blocks), Huber loss beyond {self.huber:g} sigma")
 
 
 def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -170,18 +182,19 @@ class Likelihood:
         chi_F = float(rF @ rF)
         c = self.noise.huber
         chi_u, sq, n, sys_sq, sys_n, floor_sq = 0.0, 0.0, 0, 0.0, 0, 0.0
-        for tp, m in zip(self.tracked.pairs, self.model_px(params, a)):
+        for j, (tp, m) in enumerate(zip(self.tracked.pairs, self.model_px(params, a))):
+            sigma = self.noise.sigma_px(j)
             r = (tp.measured_px - m)[tp.valid]
             sq += float((r**2).sum())
             n += r.shape[0]
-            z = np.abs(r) / self.noise.displacement_sigma_px
+            z = np.abs(r) / sigma
             chi_u += float(np.where(z <= c, z * z, 2 * c * z - c * c).sum())
             s, k = _systematic(tp.measured_px - m, tp.valid, tp.grid_index)
             sys_sq += float((s**2).sum())
             sys_n += len(s)
             # what the noise alone leaves in those medians: a median of k independent
             # Gaussian values has variance about (pi / 2) sigma^2 / k, per component
-            floor_sq += float((2 * (math.pi / 2) * self.noise.displacement_sigma_px**2 / np.maximum(k, 1)).sum())
+            floor_sq += float((2 * (math.pi / 2) * sigma**2 / np.maximum(k, 1)).sum())
         return {"total": chi_F + chi_u, "force": chi_F, "images": chi_u,
                 "force_rms_N": float(np.sqrt(np.mean((rF * self.noise.force_sigma_N) ** 2))),
                 "displacement_rms_px": float(np.sqrt(sq / max(n, 1))),
@@ -313,7 +326,8 @@ def noise_model(problem: EffectProblem, tracked: TrackedField) -> NoiseModel:
     sigma_F = problem.force_sigma_N
     if not np.isfinite(sigma_F) or sigma_F <= 0:
         sigma_F = max(1e-3 * problem.force_scale_N, 1e-6)
-    return NoiseModel(float(sigma_F), len(problem.log_F), tracked.noise_px, 2 * tracked.n_valid)
+    return NoiseModel(float(sigma_F), len(problem.log_F), tracked.noise_px, 2 * tracked.n_valid,
+                      pair_sigma_px=tuple(tracked.pair_noise(k) for k in range(len(tracked.pairs))))
 
 
 def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=None, progress=None, cancel=None,
@@ -404,8 +418,8 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
         from app.core.effects.inclusion import scan
 
         say("scanning the image plane for an undescribed inclusion")
-        guess = scan(problem, base.parameters, tracked, lik0.model_px(base.parameters), noise.displacement_sigma_px,
-                     cancel=cancel)
+        guess = scan(problem, base.parameters, tracked, lik0.model_px(base.parameters), noise.pair_sigma_px
+                     or noise.displacement_sigma_px, cancel=cancel)
         if guess is None:
             raise ElastoidError("no localized misfit to place an inclusion at")
         say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm")

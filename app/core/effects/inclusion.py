@@ -60,12 +60,14 @@ def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float) -> str:
             f"it explains the misfit")
 
 
-def scan(problem, params: dict, tracked, model_px_per_pair, noise_px: float, radii_mm=None,
+def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=None,
          cancel=None) -> InclusionGuess | None:
     """Locate an undescribed inclusion by the sensitivity scan (module docstring).
 
     ``problem``: the current model (an :class:`app.core.effects.model.EffectProblem`)
-    at ``params``; ``model_px_per_pair``: its displacement at the tracked blocks."""
+    at ``params``; ``model_px_per_pair``: its displacement at the tracked blocks;
+    ``noise_px``: the tracking noise, one value or one per frame pair (each pair's
+    misfit and patterns are weighted by its inverse, so the scan works in chi2)."""
     from app.core.errors import Cancelled
     from app.core.fem import QUAD_BARY, QUAD_W, coefficients, interpolation_matrix, lame, quadrature_points, \
         shape_gradients
@@ -98,17 +100,19 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px: float, rad
         xq = quadrature_points(space, QUAD_BARY)  # (m, q, 3)
 
         # the tracked blocks: interpolation, valid mask, misfit
+        sigmas = np.broadcast_to(np.asarray(noise_px, float), (len(tracked.pairs),))
         ops, rs = [], []
-        for tp, pair, mp in zip(tracked.pairs, problem.pairs, model_px_per_pair):
+        for tp, pair, mp, sg in zip(tracked.pairs, problem.pairs, model_px_per_pair, sigmas):
             pts = np.clip(tp.points_world_mm[tp.valid], 0.0, size)
-            ops.append((interpolation_matrix(space, pts), pair.d_target_mm - pair.d_source_mm))
-            rs.append((tp.measured_px - mp)[tp.valid])
-        r = np.clip(np.concatenate(rs).ravel(), -3 * noise_px, 3 * noise_px)
+            # whitened: px / sigma of the pair
+            ops.append((interpolation_matrix(space, pts), (pair.d_target_mm - pair.d_source_mm) / sg))
+            rs.append((tp.measured_px - mp)[tp.valid] / sg)
+        r = np.clip(np.concatenate(rs).ravel(), -3.0, 3.0)
         if r.size < 6:
             return None
 
         def patterns(weights: list) -> np.ndarray:
-            """Model change (px, flattened like r) per unit relative stiffening of the
+            """Model change (px / sigma, flattened like r) per unit relative stiffening of the
             tissue at the quadrature points with each of these weights (m, q): one
             column each, from one multi-right-hand-side solve (about 5x cheaper per
             column than one at a time)."""
@@ -161,7 +165,7 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px: float, rad
                 if jj <= 0:
                     continue
                 amp = float(Jc @ r_perp) / jj
-                gain = amp * amp * jj  # px^2 of misfit explained
+                gain = amp * amp * jj  # chi2 of misfit explained
                 if best is None or gain > best[0]:
                     best = (gain, c, rad, amp)
     finally:
@@ -170,4 +174,4 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px: float, rad
         return None
     gain, c, rad, amp = best
     name = new_region_name(exp.specimen.region_names)
-    return InclusionGuess(name, tuple(float(v) for v in c), float(rad), bool(amp > 0), float(gain / noise_px**2))
+    return InclusionGuess(name, tuple(float(v) for v in c), float(rad), bool(amp > 0), float(gain))
