@@ -85,6 +85,25 @@ class NoiseModel:
                 f"(estimated from the blocks), Huber loss beyond {self.huber:g} sigma")
 
 
+def _block_sigma(tp, noise: NoiseModel, k: int) -> np.ndarray:
+    """Tracking noise (px) of every block of pair ``k`` (the pair's when tracking gave none per block)."""
+    if tp.sigma_px is not None:
+        return np.asarray(tp.sigma_px, float)
+    return np.full(len(tp.valid), noise.sigma_px(k))
+
+
+def _neighbour_mean(values: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Mean of ``values`` over each valid block's 3 x 3 neighbourhood (valid blocks),
+    in the order :func:`_systematic` returns its medians."""
+    lut = {tuple(g): i for i, g in enumerate(grid) if valid[i]}
+    out = []
+    for i, (r, cc) in enumerate(grid):
+        if valid[i]:
+            out.append(np.mean([values[lut[(r + dr, cc + dc)]] for dr in (-1, 0, 1) for dc in (-1, 0, 1)
+                                if (r + dr, cc + dc) in lut]))
+    return np.asarray(out, float)
+
+
 def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The smooth part of a block residual field: the median over each block's 3 x 3
     neighbourhood (valid blocks), which keeps a systematic misfit and suppresses
@@ -183,18 +202,20 @@ class Likelihood:
         c = self.noise.huber
         chi_u, sq, n, sys_sq, sys_n, floor_sq = 0.0, 0.0, 0, 0.0, 0, 0.0
         for j, (tp, m) in enumerate(zip(self.tracked.pairs, self.model_px(params, a))):
-            sigma = self.noise.sigma_px(j)
+            sigma = _block_sigma(tp, self.noise, j)
             r = (tp.measured_px - m)[tp.valid]
             sq += float((r**2).sum())
             n += r.shape[0]
-            z = np.abs(r) / sigma
+            z = np.abs(r) / sigma[tp.valid][:, None]
             chi_u += float(np.where(z <= c, z * z, 2 * c * z - c * c).sum())
             s, k = _systematic(tp.measured_px - m, tp.valid, tp.grid_index)
             sys_sq += float((s**2).sum())
             sys_n += len(s)
             # what the noise alone leaves in those medians: a median of k independent
             # Gaussian values has variance about (pi / 2) sigma^2 / k, per component
-            floor_sq += float((2 * (math.pi / 2) * sigma**2 / np.maximum(k, 1)).sum())
+            # (sigma^2 averaged over the neighbourhood)
+            s2 = _neighbour_mean(sigma**2, tp.valid, tp.grid_index)
+            floor_sq += float((2 * (math.pi / 2) * s2 / np.maximum(k, 1)).sum())
         return {"total": chi_F + chi_u, "force": chi_F, "images": chi_u,
                 "force_rms_N": float(np.sqrt(np.mean((rF * self.noise.force_sigma_N) ** 2))),
                 "displacement_rms_px": float(np.sqrt(sq / max(n, 1))),
@@ -418,8 +439,8 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
         from app.core.effects.inclusion import scan
 
         say("scanning the image plane for an undescribed inclusion")
-        guess = scan(problem, base.parameters, tracked, lik0.model_px(base.parameters), noise.pair_sigma_px
-                     or noise.displacement_sigma_px, cancel=cancel)
+        guess = scan(problem, base.parameters, tracked, lik0.model_px(base.parameters),
+                     [_block_sigma(tp, noise, k)[tp.valid] for k, tp in enumerate(tracked.pairs)], cancel=cancel)
         if guess is None:
             raise ElastoidError("no localized misfit to place an inclusion at")
         say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm")

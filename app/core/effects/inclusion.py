@@ -66,8 +66,9 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=N
 
     ``problem``: the current model (an :class:`app.core.effects.model.EffectProblem`)
     at ``params``; ``model_px_per_pair``: its displacement at the tracked blocks;
-    ``noise_px``: the tracking noise, one value or one per frame pair (each pair's
-    misfit and patterns are weighted by its inverse, so the scan works in chi2)."""
+    ``noise_px``: the tracking noise, one value, or per frame pair one value or one
+    per valid block (each block's misfit and patterns are weighted by its inverse,
+    so the scan works in chi2)."""
     from app.core.errors import Cancelled
     from app.core.fem import QUAD_BARY, QUAD_W, coefficients, interpolation_matrix, lame, quadrature_points, \
         shape_gradients
@@ -100,13 +101,15 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=N
         xq = quadrature_points(space, QUAD_BARY)  # (m, q, 3)
 
         # the tracked blocks: interpolation, valid mask, misfit
-        sigmas = np.broadcast_to(np.asarray(noise_px, float), (len(tracked.pairs),))
+        if isinstance(noise_px, (int, float, np.floating)):
+            noise_px = [float(noise_px)] * len(tracked.pairs)
         ops, rs = [], []
-        for tp, pair, mp, sg in zip(tracked.pairs, problem.pairs, model_px_per_pair, sigmas):
+        for tp, pair, mp, sg in zip(tracked.pairs, problem.pairs, model_px_per_pair, noise_px):
             pts = np.clip(tp.points_world_mm[tp.valid], 0.0, size)
-            # whitened: px / sigma of the pair
-            ops.append((interpolation_matrix(space, pts), (pair.d_target_mm - pair.d_source_mm) / sg))
-            rs.append((tp.measured_px - mp)[tp.valid] / sg)
+            sg = np.broadcast_to(np.asarray(sg, float), (len(pts),))
+            # whitened: px / sigma of each block
+            ops.append((interpolation_matrix(space, pts), (pair.d_target_mm - pair.d_source_mm) / sg[:, None, None]))
+            rs.append((tp.measured_px - mp)[tp.valid] / sg[:, None])
         r = np.clip(np.concatenate(rs).ravel(), -3.0, 3.0)
         if r.size < 6:
             return None
