@@ -85,19 +85,30 @@ def render(points_mm: np.ndarray, amplitude: np.ndarray, exp, displacement_mm: f
     lateral = d @ lat
     depth = -d[:, 2]
     el = d @ elev
-    # fine grid: 2 samples per column laterally, 4 per row axially
+    # fine grid: 2 samples per column laterally, 4 per row axially. Each scatterer
+    # is splatted bilinearly onto its four nearest grid points (so its envelope
+    # moves continuously with it, not in grid steps), and each share carries the
+    # round-trip phase from that grid point to the scatterer, exp(-j 2k (z - z_g)):
+    # with the kernel's carrier exp(j 2k (z_out - z_g)) the echo's phase at the
+    # output is exactly exp(j 2k (z_out - z)), whatever the grid.
     fl, fa = 2, 4
     dl, da = sc / fl, sr / fa
-    gl = np.round((lateral / sc + c0) * fl).astype(np.int64)
-    ga = np.round((depth / sr + r0) * fa).astype(np.int64)
+    xl = (lateral / sc + c0) * fl  # fine-grid coordinates
+    xa = (depth / sr + r0) * fa
     T = transducer
-    keep = (np.abs(el) < 3 * T.elevation_sigma_mm) & (gl >= -8) & (gl < cols * fl + 8) & (ga >= -16) & (ga < rows * fa + 16)
+    keep = (np.abs(el) < 3 * T.elevation_sigma_mm) & (xl >= -8) & (xl < cols * fl + 7) & (xa >= -16) & (xa < rows * fa + 15)
     k2 = 2 * T.wavenumber_per_mm
-    w = amplitude[keep] * np.exp(-0.5 * (el[keep] / T.elevation_sigma_mm) ** 2) * np.exp(-1j * k2 * depth[keep])
-    # exact sub-cell envelope position is below the grid step; the phase is exact
+    xl, xa = xl[keep], xa[keep]
+    base = amplitude[keep] * np.exp(-0.5 * (el[keep] / T.elevation_sigma_mm) ** 2)
+    il, ia = np.floor(xl).astype(np.int64), np.floor(xa).astype(np.int64)
+    fl_w, fa_w = xl - il, xa - ia
     nl, na = cols * fl + 16, rows * fa + 32
     grid = np.zeros((na, nl), complex)
-    np.add.at(grid, (ga[keep] + 16, gl[keep] + 8), w)
+    for oa, wa in ((0, 1.0 - fa_w), (1, fa_w)):
+        # the phase from grid row ia + oa to the scatterer: 2k (xa - ia - oa) da
+        phase = np.exp(-1j * k2 * (fa_w - oa) * da)
+        for ol, wl in ((0, 1.0 - fl_w), (1, fl_w)):
+            np.add.at(grid, (ia + oa + 16, il + ol + 8), base * wa * wl * phase)
     za = np.arange(-int(4 * T.axial_sigma_mm / da), int(4 * T.axial_sigma_mm / da) + 1) * da
     zl = np.arange(-int(4 * T.lateral_sigma_mm / dl), int(4 * T.lateral_sigma_mm / dl) + 1) * dl
     ka = np.exp(-0.5 * (za / T.axial_sigma_mm) ** 2) * np.exp(1j * k2 * za)
