@@ -147,24 +147,6 @@ def block_noise(residual: np.ndarray, grid: np.ndarray, factor: np.ndarray) -> f
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))))
 
 
-def robust_noise(values: np.ndarray, grid: np.ndarray) -> float:
-    """Noise of values (n, k) on a block grid (n, 2 ints): MAD of second differences
-    along rows and columns between valid neighbours, / sqrt(6)."""
-    if len(values) < 3:
-        return float("nan")
-    lut = {tuple(g): i for i, g in enumerate(grid)}
-    d2 = []
-    for i, (r, c) in enumerate(grid):
-        for dr, dc in ((0, 1), (1, 0)):
-            j, k = lut.get((r - dr, c - dc)), lut.get((r + dr, c + dc))
-            if j is not None and k is not None:
-                d2.append(values[j] - 2 * values[i] + values[k])
-    if len(d2) < 3:
-        return float("nan")
-    d2 = np.asarray(d2).ravel()
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
-
-
 REFINE_ITERATIONS = 5  # sub-pixel refinement rounds of each block (see track)
 SOURCE_ORDER = 3  # spline order sampling the source block (linear at half pixels would blur it)
 

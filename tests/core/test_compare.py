@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import fourier_shift, gaussian_filter
 
-from app.core.compare import _block_match, robust_noise
+from app.core.compare import _block_match, block_noise, decorrelation_factor
 
 
 def _speckle(shape, seed):
@@ -23,14 +23,36 @@ def test_block_match_recovers_a_known_translation(shift):
     assert ncc > 0.8
 
 
-def test_robust_noise_finds_the_noise_under_a_smooth_field_and_outliers():
+def test_block_noise_finds_the_noise_under_a_smooth_field_and_outliers():
     rng = np.random.default_rng(0)
     R, C = np.mgrid[0:20, 0:20]
     grid = np.column_stack([R.ravel(), C.ravel()])
     smooth = 0.5 * np.sin(R / 6.0) + 0.02 * C  # a smooth misfit is not noise
     vals = (smooth.ravel()[:, None] + 0.3 * rng.standard_normal((400, 2)))
     vals[rng.choice(400, 12, replace=False)] += 8.0  # a few decorrelated blocks
-    assert robust_noise(vals, grid) == pytest.approx(0.3, rel=0.15)
+    assert block_noise(vals, grid, np.ones(400)) == pytest.approx(0.3, rel=0.15)
+
+
+def test_block_noise_finds_the_scale_of_noise_that_differs_from_block_to_block():
+    """sigma_i = s * f_i with f_i from each block's correlation: the scale s is
+    recovered whatever the spread of the factors."""
+    rng = np.random.default_rng(1)
+    R, C = np.mgrid[0:20, 0:20]
+    grid = np.column_stack([R.ravel(), C.ravel()])
+    quality = rng.uniform(0.35, 0.95, 400)
+    f = decorrelation_factor(quality)
+    noise = 0.2 * f[:, None] * rng.standard_normal((400, 2))
+    vals = 0.02 * C.ravel()[:, None] + noise
+    assert f.max() / f.min() > 5
+    s = block_noise(vals, grid, f)
+    assert s == pytest.approx(0.2, rel=0.15)
+    # the per-block sigmas describe the worst and the best blocks alike; one pooled
+    # sigma (unit factors) understates the worst blocks' noise
+    worst, best = quality < np.quantile(quality, 0.25), quality > np.quantile(quality, 0.75)
+    for group in (worst, best):
+        assert np.std(noise[group] / (s * f[group, None])) == pytest.approx(1.0, rel=0.2)
+    pooled = block_noise(vals, grid, np.ones(400))
+    assert np.std(noise[worst] / pooled) > 1.5
 
 
 def test_tracking_does_not_lean_on_the_model_it_starts_from(tmp_path):
