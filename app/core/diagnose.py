@@ -77,7 +77,8 @@ class NoiseModel:
     def describe(self) -> str:
         if len(self.pair_sigma_px) > 1:
             per = ", ".join(f"{s:.3g}" for s in self.pair_sigma_px)
-            img = f"independent noise per component of {per} px in the {len(self.pair_sigma_px)} frame pairs"
+            img = (f"independent noise per component, each block's from how well it correlated: "
+                   f"RMS {per} px in the {len(self.pair_sigma_px)} frame pairs")
         else:
             img = f"independent {self.displacement_sigma_px:.3g} px noise per component"
         return (f"force: independent Gaussian noise of {self.force_sigma_N:.3g} N on each of {self.n_force} samples "
