@@ -93,16 +93,40 @@ def _block_sigma(tp, noise: NoiseModel, k: int) -> np.ndarray:
     return np.full(len(tp.valid), noise.sigma_px(k))
 
 
+_NEIGHBOURHOODS: dict = {}
+
+
+def _neighbourhoods(valid: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """For each valid block (in index order), the indices of the valid blocks in its
+    3 x 3 neighbourhood, itself included: (n_valid, 9), -1 where there is none.
+    Depends only on which blocks are valid, so it is built once per tracked pair
+    (the fits evaluate the misfit thousands of times)."""
+    key = (np.asarray(valid, bool).tobytes(), np.asarray(grid).tobytes())
+    idx = _NEIGHBOURHOODS.get(key)
+    if idx is None:
+        lut = {tuple(g): i for i, g in enumerate(grid) if valid[i]}
+        rows = []
+        for i, (r, cc) in enumerate(grid):
+            if valid[i]:
+                rows.append([lut.get((r + dr, cc + dc), -1) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
+        idx = np.asarray(rows, int).reshape(-1, 9)
+        if len(_NEIGHBOURHOODS) > 256:
+            _NEIGHBOURHOODS.clear()
+        _NEIGHBOURHOODS[key] = idx
+    return idx
+
+
+def _gather(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """values[idx] with NaN where idx is -1: (n_valid, 9, ...)."""
+    v = np.asarray(values, float)[np.where(idx >= 0, idx, 0)]
+    v[idx < 0] = np.nan  # a (n, 9) mask selects whole trailing rows
+    return v
+
+
 def _neighbour_mean(values: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """Mean of ``values`` over each valid block's 3 x 3 neighbourhood (valid blocks),
     in the order :func:`_systematic` returns its medians."""
-    lut = {tuple(g): i for i, g in enumerate(grid) if valid[i]}
-    out = []
-    for i, (r, cc) in enumerate(grid):
-        if valid[i]:
-            out.append(np.mean([values[lut[(r + dr, cc + dc)]] for dr in (-1, 0, 1) for dc in (-1, 0, 1)
-                                if (r + dr, cc + dc) in lut]))
-    return np.asarray(out, float)
+    return np.nanmean(_gather(values, _neighbourhoods(valid, grid)), axis=1)
 
 
 def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -110,15 +134,10 @@ def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> tu
     neighbourhood (valid blocks), which keeps a systematic misfit and suppresses
     the independent tracking noise (and its outliers). Returns the (n, 2) medians
     and the number of blocks each was taken over."""
-    lut = {tuple(g): i for i, g in enumerate(grid) if valid[i]}
-    out, counts = [], []
-    for i, (r, cc) in enumerate(grid):
-        if not valid[i]:
-            continue
-        nb = [lut[(r + dr, cc + dc)] for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (r + dr, cc + dc) in lut]
-        out.append(np.median(residual[nb], axis=0))
-        counts.append(len(nb))
-    return np.asarray(out).reshape(-1, 2), np.asarray(counts, float)
+    idx = _neighbourhoods(valid, grid)
+    if len(idx) == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    return np.nanmedian(_gather(residual, idx), axis=1).reshape(-1, 2), (idx >= 0).sum(axis=1).astype(float)
 
 
 MATERIAL_FRACTION = 0.3  # of the current model's error an effect must remove to be material
