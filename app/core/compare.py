@@ -179,7 +179,7 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
         H, W = src.shape
         coarse = problem._coarse_field(pair, a)  # (len(src_rows), len(src_cols), 2) px, source grid
         step = pair.warp.step
-        meas, model, qual, valid, placed = [], [], [], [], []
+        meas, model, qual, valid, placed, shifts = [], [], [], [], [], []
         mrg = 4  # search margin, px
         offs_big = np.arange(b + 2 * mrg) - (b + 2 * mrg - 1) / 2.0
         core = slice(mrg, mrg + b)
@@ -224,7 +224,8 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
             qual.append(ncc)
             valid.append(inside and ncc >= min_quality)
             placed.append(np.stack([qr_f[core, core], qc_f[core, core]]))
-        prev = (tgt, placed, valid, [np.array([m[1] - mo[1], m[0] - mo[0]]) for m, mo in zip(meas, model)])
+            shifts.append(t_acc)
+        prev = (tgt, placed, valid, shifts)
         d0 = problem.exp.frames[pair.source].displacement_mm
         world = pixel_to_world(centres[:, 0], centres[:, 1], problem.exp, d0)
         pairs.append(TrackedPair(pair.source, pair.target, centres, world, np.array(meas), np.array(model),

@@ -205,6 +205,17 @@ class Likelihood:
             name = f"__track{k}"
             problem.add_points(name, tp.points_world_mm)
             self.names.append(name)
+        # per pair, what does not depend on the parameters: each valid block's noise,
+        # and what the noise alone leaves in the 3 x 3 medians (a median of k
+        # independent Gaussian values has variance about (pi / 2) sigma^2 / k per
+        # component, sigma^2 averaged over the neighbourhood)
+        self._sigma_valid, self._floor_sq = [], []
+        for j, tp in enumerate(tracked.pairs):
+            sigma = _block_sigma(tp, noise, j)
+            k = (_neighbourhoods(tp.valid, tp.grid_index) >= 0).sum(axis=1)
+            s2 = _neighbour_mean(sigma**2, tp.valid, tp.grid_index)
+            self._sigma_valid.append(sigma[tp.valid][:, None])
+            self._floor_sq.append(float((2 * (math.pi / 2) * s2 / np.maximum(k, 1)).sum()))
 
     def model_px(self, params: dict, a=None) -> list[np.ndarray]:
         """Model displacement (n, 2) px at every tracked block of each pair."""
@@ -222,20 +233,15 @@ class Likelihood:
         c = self.noise.huber
         chi_u, sq, n, sys_sq, sys_n, floor_sq = 0.0, 0.0, 0, 0.0, 0, 0.0
         for j, (tp, m) in enumerate(zip(self.tracked.pairs, self.model_px(params, a))):
-            sigma = _block_sigma(tp, self.noise, j)
             r = (tp.measured_px - m)[tp.valid]
             sq += float((r**2).sum())
             n += r.shape[0]
-            z = np.abs(r) / sigma[tp.valid][:, None]
+            z = np.abs(r) / self._sigma_valid[j]
             chi_u += float(np.where(z <= c, z * z, 2 * c * z - c * c).sum())
-            s, k = _systematic(tp.measured_px - m, tp.valid, tp.grid_index)
+            s, _ = _systematic(tp.measured_px - m, tp.valid, tp.grid_index)
             sys_sq += float((s**2).sum())
             sys_n += len(s)
-            # what the noise alone leaves in those medians: a median of k independent
-            # Gaussian values has variance about (pi / 2) sigma^2 / k, per component
-            # (sigma^2 averaged over the neighbourhood)
-            s2 = _neighbour_mean(sigma**2, tp.valid, tp.grid_index)
-            floor_sq += float((2 * (math.pi / 2) * s2 / np.maximum(k, 1)).sum())
+            floor_sq += self._floor_sq[j]
         return {"total": chi_F + chi_u, "force": chi_F, "images": chi_u,
                 "force_rms_N": float(np.sqrt(np.mean((rF * self.noise.force_sigma_N) ** 2))),
                 "displacement_rms_px": float(np.sqrt(sq / max(n, 1))),
