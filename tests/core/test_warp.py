@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.interpolate import RBFInterpolator
@@ -85,3 +87,26 @@ def test_warp_moves_a_pattern_as_the_displacement_says():
 
     expected = shift(src, (-6.25, 3.5), order=3)[15:95, 15:85]
     assert np.abs(warped - expected).max() < 0.02 * np.ptp(src)
+
+
+def test_fast_warp_on_the_demo_deep_frame_within_a_tenth_of_a_pixel():
+    """The FE field of the demo phantom at its deepest frame (14.8 mm; the probe's
+    edges in view, where the displacement bends sharply): the fast inverse against
+    the exact TPS evaluated at every pixel by scipy's RBFInterpolator, on the ROI.
+    Measured on this mesh 0.044 px (0.068 px without the per-pixel polish); on
+    bench/core.py's paper-size mesh 0.034 px (0.058 px without; 0.106 px on an earlier mesh)."""
+    from app.core.experiment import read_experiment
+    from app.core.identify import Problem
+
+    root = Path(__file__).resolve().parents[2]
+    exp = read_experiment(root / "resources" / "demo")
+    problem = Problem.from_experiment(exp, frames=(0, len(exp.frames) - 1))
+    pair = problem.pairs[0]
+    a = problem.rm.coords(problem.theta({"E_B_kPa": 18.0, "E_A_kPa": 63.0}))
+    vals = problem.control_displacement_px(a, pair)
+    fast = pair.warp.inverse(vals)
+    rbf = RBFInterpolator(problem.ctrl_px, vals, kernel="thin_plate_spline")
+    exact = exact_inverse(rbf, problem.image_shape, pair.warp.roi)
+    err = np.abs(fast - exact).max(axis=-1)[pair.mask]
+    assert np.abs(vals).max() > 10  # a deep frame: displacements of tens of pixels
+    assert err.max() < 0.1, err.max()
