@@ -11,7 +11,15 @@ first Piola-Kirchhoff stress is P = mu (F - F^-T) + lam ln J F^-T.
 The probe travel is applied in load steps. At each step the equilibrium
 R(u) = f_int(u) = 0 on the free dofs is solved by a modified Newton iteration
 whose fixed matrix is a factorized tangent, accelerated by Anderson mixing,
-with a backtracking line search on the stored energy. The first solve walks
+with a backtracking line search on the stored energy. A tangent is refactorized
+only where the iteration is slow, and only a positive definite one is used
+(PARDISO's inertia tells): off the equilibrium path, e.g. at a predicted state
+beside the probe's edges, the tangent can have negative eigenvalues, its step
+need not lower the energy, and iterating with it stalled the walk (on the demo
+phantom at 12.5 of 14.8 mm, with steps of 0.03 mm failing, although the
+equilibria there have a positive definite tangent). Such a tangent is shifted
+towards its diagonal (a Levenberg-Marquardt step) until it is positive definite.
+The first solve walks
 the load path (continuation from step to step); it leaves, at every requested
 travel, the equilibrium and the tangent factorized there (positive definite at
 a stable equilibrium). A later solve with moduli ratios near those starts each
@@ -196,6 +204,7 @@ class HyperelasticModel:
         self.dofs = (3 * self.elems[:, :, None] + np.arange(3)).reshape(m, -1)  # (m, 30)
         self._setup_pattern()
         self._cache: dict[float, _Preconditioner] = {}
+        self._scratch: _Preconditioner | None = None  # a spare factor for trial tangents
         self._equilibria: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # travel -> (ratios, u)
         self.n_factorizations = 0
         self.n_back_solves = 0
@@ -226,6 +235,8 @@ class HyperelasticModel:
             pos[:, a, :] = full_to_ffu[p]
         self._pos = pos.ravel()
         self._n_ffu = n_ffu
+        self._diag = self._ffu_indptr[:-1]  # each row's first upper entry is its diagonal
+        assert np.array_equal(self._ffu_indices[self._diag], np.arange(len(fe.free)))
 
     # --- pieces ----------------------------------------------------------------
     def element_moduli(self, youngs_kPa, nu: float) -> tuple[np.ndarray, np.ndarray]:
@@ -306,6 +317,9 @@ class HyperelasticModel:
         if self._walk is not None:
             self._walk[1].factor.free()
             self._walk = None
+        if self._scratch is not None:
+            self._scratch.factor.free()
+            self._scratch = None
 
     # --- solve -----------------------------------------------------------------
     def solve(self, youngs_kPa, nu: float, depths_mm, *, progress: Callable[[int, int], None] | None = None,
@@ -401,7 +415,7 @@ class HyperelasticModel:
             u, pre = warm[0].copy(), warm[1]
             u[fixed] = d * fe.lift
             try:
-                return self._equilibrate(u, d, theta, ratios, mu_e, lam_e, pre, cancel)
+                return self._equilibrate(u, d, theta, ratios, mu_e, lam_e, pre, cancel, nu)
             except _StepFailed:
                 self.trace.append((d, "warm start failed"))
         if len(prev) >= 2:  # quadratic extrapolation through 0 and the last two steps
@@ -419,7 +433,7 @@ class HyperelasticModel:
         if not prev:  # the linear solution
             _, b, _, _ = fe.term_blocks(coefficients(ratios, nu))
             u[free] = d * self._linear_preconditioner(theta, nu).factor.solve(b)
-        return self._equilibrate(u, d, theta, ratios, mu_e, lam_e, pre, cancel)
+        return self._equilibrate(u, d, theta, ratios, mu_e, lam_e, pre, cancel, nu)
 
     def _nearest(self, d: float, ratios: np.ndarray) -> _Preconditioner | None:
         best, dist = None, np.inf
@@ -444,7 +458,7 @@ class HyperelasticModel:
             self._cache[0.0] = p
         return p
 
-    def _equilibrate(self, u, d, theta, ratios, mu_e, lam_e, pre: _Preconditioner, cancel):
+    def _equilibrate(self, u, d, theta, ratios, mu_e, lam_e, pre: _Preconditioner, cancel, nu: float):
         """Anderson-accelerated modified Newton on the free dofs. When the
         iteration is slow, the tangent at the current iterate is factorized (a
         Newton step) and kept for this load step."""
@@ -484,28 +498,71 @@ class HyperelasticModel:
             last_good = x.copy()
             slow = (len(hist) > 3 and hist[-1] > self.reform_rate ** 3 * hist[-4]) or hist[-1] > 2 * min(hist)
             if slow:
-                data = self.tangent_upper(u, mu_e, lam_e) / theta[0]
-                # a requested travel keeps its own factor (for later warm starts); the
-                # walk's intermediate steps share one, refactorized in place
-                if d in self._requested:
-                    pre = self._cache[d] = self._factor_into(self._cache.get(d), data, ratios, False)
+                new = self._try_factor(self.tangent_upper(u, mu_e, lam_e) / theta[0], ratios)
+                if new is None:
+                    # the tangent at this iterate is indefinite (off the stable path, e.g.
+                    # at a predictor beside the probe's edges): its Newton step need not
+                    # lower the energy, and iterating with it stalls; keep the factor in use
+                    self.trace.append((d, "indefinite tangent kept out"))
                 else:
-                    pre = self._factor_into(self._walk[1] if self._walk else None, data, ratios, False)
-                    self._walk = (d, pre)
+                    # a requested travel keeps its own factor (for later warm starts); the
+                    # walk's intermediate steps share one
+                    if d in self._requested:
+                        old, self._cache[d] = self._cache.get(d), new
+                    else:
+                        old, self._walk = (self._walk[1] if self._walk else None), (d, new)
+                    if old is not None and old is not pre:
+                        old.factor.free()
+                    elif old is not None:  # recycled as the next trial factor
+                        self._scratch = old
+                    pre = new
+                    self.trace.append((d, "reform"))
                 X, G, hist = [], [], [hist[-1]]
-                self.trace.append((d, "reform"))
             self.n_back_solves += 1
             g = -pre.factor.solve(r) / (theta[0] * pre.scale)
+            if r @ g >= 0:  # not a descent direction (cannot happen with a positive definite factor)
+                lin = self._linear_preconditioner(theta, nu)
+                self.trace.append((d, "ascent; linear stiffness used"))
+                g = -lin.factor.solve(r) / theta[0]
+                X, G = [], []
             X.append(x.copy())
             G.append(g)
             if len(X) > self.depth + 1:
                 X.pop(0)
                 G.pop(0)
+            step = g
             if len(G) >= 2:
                 dG = np.column_stack([G[j + 1] - G[j] for j in range(len(G) - 1)])
                 dX = np.column_stack([X[j + 1] - X[j] for j in range(len(X) - 1)])
                 gamma, *_ = np.linalg.lstsq(dG, g, rcond=None)
-                x = x + g - (dX + dG) @ gamma
-            else:
-                x = x + g
+                step = g - (dX + dG) @ gamma
+                if r @ step >= 0:  # the mixed step would raise the energy: the plain one
+                    step = g
+                    X, G = [x.copy()], [g]
+            x = x + step
         raise _StepFailed(d)
+
+    def _try_factor(self, data, ratios) -> _Preconditioner | None:
+        """A factor of the tangent values ``data`` (into the spare factor), or None
+        when the matrix is not positive definite (its inertia, from PARDISO)."""
+        p = self._scratch
+        if p is None:
+            p = _Preconditioner(self._factor(data), ratios, 1.0, False)
+        else:
+            p.factor.refactor(data)
+            self.n_factorizations += 1
+            p.ratios, p.scale, p.at_equilibrium = ratios, 1.0, False
+        # indefinite: shift it towards its diagonal (a Levenberg-Marquardt step,
+        # between Newton's and steepest descent's) until it is positive definite
+        shift = 1e-3
+        while p.factor.negative_eigenvalues and shift <= 1.0:
+            shifted = data.copy()
+            shifted[self._diag] *= 1.0 + shift
+            p.factor.refactor(shifted)
+            self.n_factorizations += 1
+            shift *= 10.0
+        if p.factor.negative_eigenvalues:
+            self._scratch = p
+            return None
+        self._scratch = None
+        return p

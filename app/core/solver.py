@@ -153,6 +153,14 @@ class SymmetricFactor:
         self._data = np.ascontiguousarray(upper_data, self.dtype)
         self._call(22, np.zeros(self.n, self.dtype))
 
+    @property
+    def negative_eigenvalues(self) -> int | None:
+        """Number of negative eigenvalues of the last factorized matrix (its inertia,
+        from PARDISO's Bunch-Kaufman factorization), or None when unknown (SuperLU)."""
+        if self._fallback is not None or self.mtype != -2:
+            return None
+        return int(self._s.iparm[22])
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         if self._fallback is not None:
             return self._fallback.solve(b)

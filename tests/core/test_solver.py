@@ -41,3 +41,21 @@ def test_factorized_solves_many_right_hand_sides(monkeypatch, pardiso):
     B = np.random.default_rng(0).standard_normal((A.shape[0], 3))
     X = solver.spsolve(A, B)
     assert np.abs(A @ X - B).max() < 1e-10
+
+
+def test_symmetric_factor_reports_the_inertia_of_an_indefinite_matrix():
+    """The hyperelastic iteration keeps tangents with negative eigenvalues out (their
+    Newton step need not lower the energy): PARDISO's count must be right."""
+    if not solver.HAVE_PARDISO:
+        pytest.skip("inertia comes from MKL PARDISO, which this platform lacks")
+    rng = np.random.default_rng(0)
+    n = 60
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    for n_neg in (0, 1, 3):
+        eig = np.concatenate([-rng.uniform(0.5, 2.0, n_neg), rng.uniform(0.5, 2.0, n - n_neg)])
+        A = (Q * eig) @ Q.T
+        f = solver.SymmetricFactor(sp.csr_matrix(np.triu(A)), single=False)
+        assert f.negative_eigenvalues == n_neg
+        b = rng.normal(size=n)
+        assert np.allclose(A @ f.solve(b), b, atol=1e-8)
+        f.free()
