@@ -8,7 +8,9 @@ Prints a table of medians over repeats. Targets: a hyperelastic forward solve
 (all load steps to the demo's deepest travel, with the factorizations an
 earlier solve left, as inside a fit) in at most 2 s; a full diagnosis in at
 most 2 minutes. The first (cold) hyperelastic solve, which factorizes its
-tangents, is reported separately.
+tangents, is reported separately. Each diagnosis runs as a user's first one:
+with a mesh cache holding only the demo's own mesh, so that the inclusion
+candidate meshes its sphere every time.
 """
 
 from __future__ import annotations
@@ -67,19 +69,46 @@ def bench_diagnose(repeats: int, candidates) -> list[tuple[str, float, str]]:
     from app.core.diagnose import diagnose
     from app.core.experiment import read_experiment
 
+    import os
+    import shutil
+    import tempfile
+
+    from app.core.mesh import auto_settings, cache_dir, _mesh_key
+
     exp = read_experiment(ROOT / "resources" / "demo")
+    rect = exp.probe.face_rect_mm()
+    key = _mesh_key(exp.specimen.size_mm, rect, exp.specimen.regions,
+                    auto_settings(exp.specimen.size_mm, rect, exp.specimen.regions))
+    demo_mesh = cache_dir() / f"{key}.npz"
+    if not demo_mesh.is_file():
+        demo_mesh = ROOT / "tests" / "data" / "meshes" / f"{key}.npz"
     times, verdicts, per = [], [], {}
+    saved = os.environ.get("ELASTOID_CACHE_DIR")
     for _ in range(repeats):
-        t = time.perf_counter()
-        d = diagnose(exp, candidates=candidates)
-        times.append(time.perf_counter() - t)
+        # each run as a user's first: a cache holding only the demo's own mesh, so the
+        # inclusion candidate meshes its sphere (about 30 s) every time
+        with tempfile.TemporaryDirectory() as tmp:
+            os.environ["ELASTOID_CACHE_DIR"] = tmp
+            if demo_mesh.is_file():
+                shutil.copy(demo_mesh, cache_dir() / demo_mesh.name)
+            try:
+                t = time.perf_counter()
+                d = diagnose(exp, candidates=candidates)
+                times.append(time.perf_counter() - t)
+            finally:
+                if saved is None:
+                    os.environ.pop("ELASTOID_CACHE_DIR", None)
+                else:
+                    os.environ["ELASTOID_CACHE_DIR"] = saved
         verdicts.append(d.verdict)
         for c in d.candidates:
             per.setdefault(c.effect, []).append(c.seconds)
     rows = [("full diagnosis of the demo (median)", statistics.median(times),
              f"verdict {', '.join(verdicts)}")]
     for e, ts in per.items():
-        rows.append((f"  candidate {e}", statistics.median(ts), ""))
+        rows.append((f"  candidate {e}", statistics.median(ts),
+                     "its scan, mesh and reduced model are built in the background while the others run"
+                     if e == "inclusion" else ""))
     return rows
 
 

@@ -382,13 +382,67 @@ def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=N
     """The problem for a model: effects on the experiment (with an added inclusion region, if any)."""
     effects = check(effects)
     if inclusion is not None:
-        from app.core.geometry import Region
-
-        region = Region(inclusion["name"], "sphere", center_mm=tuple(inclusion["center_mm"]),
-                        radius_mm=float(inclusion["radius_mm"]))
-        exp = replace(exp, specimen=exp.specimen.with_region(region))
+        exp = _with_inclusion(exp, inclusion)
     return EffectProblem.from_experiment(exp, effects=effects, mesh_settings=mesh_settings, base=base,
                                          inclusion=inclusion, progress=progress, cancel=cancel, **kw)
+
+
+def _with_inclusion(exp, inclusion: dict):
+    """The experiment with an added inclusion's sphere among its regions."""
+    from app.core.geometry import Region
+
+    region = Region(inclusion["name"], "sphere", center_mm=tuple(inclusion["center_mm"]),
+                    radius_mm=float(inclusion["radius_mm"]))
+    return replace(exp, specimen=exp.specimen.with_region(region))
+
+
+class _InclusionPrep:
+    """The inclusion candidate's first half, started as soon as the current model
+    is fitted: the scan that locates the sphere, then the model with the sphere as
+    a region (its mesh, FE model and reduced model), built in a background thread
+    while the other candidates are tried (the mesher runs in a child process;
+    the sparse solves and BLAS release the GIL). On the demo this part took
+    about 45 s of the diagnosis' 136 s, nearly all of it now hidden."""
+
+    def __init__(self, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, say, cancel):
+        from app.core.effects.inclusion import scan
+
+        self.problem, self.error, self._thread, self.inclusion = None, None, None, None
+        say("scanning the image plane for an undescribed inclusion")
+        try:
+            self.guess = scan(problem, base.parameters, tracked, lik0.model_px(base.parameters),
+                              [_block_sigma(tp, noise, k)[tp.valid] for k, tp in enumerate(tracked.pairs)],
+                              cancel=cancel)
+        except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate fails, not the diagnosis
+            self.guess, self.error = None, exc
+        if self.guess is None:
+            return
+        say(f"inclusion located at {np.round(self.guess.center_mm, 1).tolist()} mm, "
+            f"radius {self.guess.radius_mm:.1f} mm; building its model in the background")
+        self.inclusion = {"name": self.guess.name, **self.guess.as_parameters()}
+
+        effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {"inclusion"})
+
+        def work():
+            try:
+                self.problem = current_model(problem.exp, effects, mesh_settings=mesh_settings,
+                                             inclusion=self.inclusion, cancel=cancel, nu=problem.nu)
+            except BaseException as exc:  # handed to the thread that waits for the model
+                self.error = exc
+
+        self._thread = threading.Thread(target=work, name="inclusion-mesh", daemon=True)
+        self._thread.start()
+
+    def result(self):
+        """(guess, inclusion dict, the model with the inclusion); waits for the model."""
+        if self.error is not None and self._thread is None:
+            raise self.error
+        if self.guess is None:
+            raise ElastoidError("no localized misfit to place an inclusion at")
+        self._thread.join()
+        if self.error is not None:
+            raise self.error
+        return self.guess, self.inclusion, self.problem
 
 
 def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None = None, start: dict | None = None,
@@ -432,6 +486,13 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
                      inclusion, time.perf_counter() - t1, problem)
     comparison = compare(problem, base_params, tracked)
 
+    prep = None
+    if "inclusion" in candidates:  # scanned now, its model built while the others are tried, tried last
+        prep = _InclusionPrep(problem, base, tracked, noise, lik0, mesh_settings, say, cancel)
+    # the quick candidates first (while the background work has the other core), then the
+    # hyperelastic one (its factorizations use both cores), then the inclusion
+    slow = ("hyperelastic", "inclusion")
+    candidates = tuple(c for c in candidates if c not in slow) + tuple(c for c in slow if c in candidates)
     out = []
     for eff in candidates:
         if cancel is not None and cancel.is_set():
@@ -440,7 +501,7 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
         t1 = time.perf_counter()
         try:
             cand = _try_effect(exp, eff, problem, base, tracked, noise, lik0, mesh_settings, max_evaluations, say,
-                               cancel)
+                               cancel, prep)
         except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:
             say(f"{eff}: failed ({exc})")
             cand = Candidate(eff, tuple(sorted(set(problem.effects) | {eff}, key=EFFECT_IDS.index)), {},
@@ -457,22 +518,15 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
 
 
 def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings,
-                max_evaluations, say, cancel) -> Candidate:
+                max_evaluations, say, cancel, prep: _InclusionPrep | None = None) -> Candidate:
     effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {eff})
     start = dict(base.parameters)
     inclusion = problem.inclusion
     if eff == "inclusion":
-        from app.core.effects.inclusion import scan
-
-        say("scanning the image plane for an undescribed inclusion")
-        guess = scan(problem, base.parameters, tracked, lik0.model_px(base.parameters),
-                     [_block_sigma(tp, noise, k)[tp.valid] for k, tp in enumerate(tracked.pairs)], cancel=cancel)
-        if guess is None:
-            raise ElastoidError("no localized misfit to place an inclusion at")
-        say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm")
-        inclusion = {"name": guess.name, **guess.as_parameters()}
-        cp = current_model(problem.exp, effects, mesh_settings=mesh_settings, inclusion=inclusion, progress=say,
-                           cancel=cancel, nu=problem.nu)
+        if prep is None:
+            prep = _InclusionPrep(problem, base, tracked, noise, lik0, mesh_settings, say, cancel)
+        say("waiting for the model with the inclusion")
+        guess, inclusion, cp = prep.result()
         bg = base.parameters[problem.moduli_names[0]]
         # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
         from app.core.geometry import paint_labels
