@@ -40,5 +40,7 @@ def evidence(effect: str, lateral_misfit_px: np.ndarray, depth_mm: np.ndarray, s
         where, what = "in the deepest part of the image", "bonded to the table"
     spread = float(np.median(lat[near]) * spacing_mm) if np.any(near) else 0.0
     direction = "outwards" if spread >= 0 else "inwards"
-    return (f"{where} the tissue moves sideways {abs(spread):.2f} mm {direction} more than the model, which holds it "
+    moves = (f"moves sideways {abs(spread):.2f} mm {direction} more than the model" if abs(spread) >= 0.005
+             else "moves sideways as the model says (within 0.01 mm)")
+    return (f"{where} the tissue {moves}, which holds it "
             f"{what}; letting it slide brings the displacement misfit from {rms_before_px:.2f} to {rms_after_px:.2f} px")

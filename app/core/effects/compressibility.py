@@ -56,6 +56,8 @@ class LameReducedModel(ReducedModel):
 
 def evidence(nu_fit: float, nu_baseline: float, rms_before_px: float, rms_after_px: float) -> str:
     # volume change of a small cube under uniaxial strain eps with free sides: (1 - 2 nu) eps
-    return (f"the tissue changes volume under the probe as a Poisson's ratio of {nu_fit:.2f} says, where the model "
-            f"keeps it at {nu_baseline:.2f} (nearly incompressible); the displacement misfit falls from "
+    digits = 2 if round(nu_fit, 2) != round(nu_baseline, 2) else 3  # 0.487 vs 0.49 must not read "0.49 vs 0.49"
+    fit, base = f"{nu_fit:.{digits}f}", f"{nu_baseline:.{digits}f}"
+    return (f"the tissue changes volume under the probe as a Poisson's ratio of {fit} says, where the model "
+            f"keeps it at {base} (nearly incompressible); the displacement misfit falls from "
             f"{rms_before_px:.2f} to {rms_after_px:.2f} px")

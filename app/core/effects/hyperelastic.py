@@ -45,8 +45,10 @@ def stiffening(d_mm: np.ndarray, force_N: np.ndarray) -> float:
 def evidence(d_mm, measured_N, model_N) -> str:
     s_meas = stiffening(d_mm, measured_N)
     s_mod = stiffening(d_mm, model_N)
-    word = "stiffens" if s_meas >= 0 else "softens"
-    model = ("grows in proportion to the travel" if abs(s_mod) < 0.01
-             else f"{'stiffens' if s_mod >= 0 else 'softens'} by {100 * abs(s_mod):.0f}%")
-    return (f"the force {word} by {100 * abs(s_meas):.0f}% from the first to the second half of the indentation; "
-            f"the model's force {model}")
+    def says(s):
+        if abs(s) < 0.01:
+            return "grows in proportion to the travel (within 1%)"
+        return f"{'stiffens' if s >= 0 else 'softens'} by {100 * abs(s):.0f}%"
+
+    return (f"from the first to the second half of the indentation the measured force {says(s_meas)}; "
+            f"the model's force {says(s_mod)}")
