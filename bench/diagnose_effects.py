@@ -8,7 +8,7 @@ runs on top of it: it should name the other one.
 
 The experiment is simulated once into a temporary folder and reused; set TAG=x for a
 fresh one (the truth mesh differs each time: fTetWild is not deterministic).
-IMG=192x180 sets the image size, TRUTHSCALE the truth mesh's scale of the
+IMG=192x180 sets the image size, INCL=x,y,z,radius,E_kPa the hidden inclusion, TRUTHSCALE the truth mesh's scale of the
 identification mesh (0.7 by default), IDSCALE the identification mesh's scale.
 """
 import os, sys, tempfile, time
@@ -33,7 +33,9 @@ if __name__ == "__main__":
     if eff == "compressibility": kw = dict(nu=0.3)
     elif eff == "hyperelastic": kw = dict(effects=("hyperelastic",), depth_mm=6.0, frames_at_mm=(0.0, 3.0, 6.0))  # 7.5 mm: the truth solve stalls near 6.6 mm
     elif eff == "inclusion":
-        kw = dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),), moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})
+        # INCL=x,y,z,radius,E_kPa: another hidden sphere (default 26,20,14,4,60)
+        x, y, z, r, e = (float(v) for v in os.environ.get("INCL", "26,20,14,4,60").split(","))
+        kw = dict(hidden_regions=(Region("C", "sphere", center_mm=(x, y, z), radius_mm=r),), moduli_kPa={"B": 15.0, "A": 45.0, "C": e})
     elif "+" in eff: kw = dict(effects=tuple(eff.split("+")))  # two (or more) hidden at once
     elif eff != "none": kw = dict(effects=(eff,))
     folder = Path(tempfile.gettempdir()) / f"elastoid-bench-{eff}-{seed}{os.environ.get('TAG', '')}"
