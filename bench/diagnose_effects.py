@@ -31,7 +31,9 @@ if __name__ == "__main__":
                 image_shape=(128, 120), truth_mesh=ID_MESH.with_scale(0.7))
     kw = {}
     if eff == "compressibility": kw = dict(nu=0.3)
-    elif eff == "hyperelastic": kw = dict(effects=("hyperelastic",), depth_mm=6.0, frames_at_mm=(0.0, 3.0, 6.0))  # 7.5 mm: the truth solve stalls near 6.6 mm
+    elif eff == "hyperelastic":  # DEPTH=mm presses deeper (before 2026-11-24 the truth solve stalled near 6.6 mm)
+        dd = float(os.environ.get("DEPTH", "6"))
+        kw = dict(effects=("hyperelastic",), depth_mm=dd, frames_at_mm=(0.0, dd / 2, dd))
     elif eff == "inclusion":
         # INCL=x,y,z,radius,E_kPa: another hidden sphere (default 26,20,14,4,60)
         x, y, z, r, e = (float(v) for v in os.environ.get("INCL", "26,20,14,4,60").split(","))
