@@ -113,15 +113,18 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
 
 
 def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_factory):
-    """The truth is neo-Hookean (large deformation), pressed to 20% of the
+    """The truth is neo-Hookean (large deformation), pressed to 25% of the
     height: the force stiffens as the probe goes deeper and the linear baseline
     cannot follow it. The diagnosis names hyperelastic; with it the moduli come
-    right and the force error goes to within the noise.
+    right and the error beyond the noise falls at least 3x.
 
-    Measured on fresh meshes (bench/diagnose_effects.py hyperelastic 1): named
-    first, pattern match 80%, moduli within 2.1% (the baseline's E_A was +24.5%),
-    force error beyond the noise to zero, displacement error 2.5x lower."""
-    exp = _make(tmp_path_factory, "hyper", 1, effects=("hyperelastic",), depth_mm=6.0, frames_at_mm=(0.0, 3.0, 6.0))
+    Measured on the committed meshes (2026-11-24): named first, pattern match
+    88%, the force stiffens 9%; moduli -1.0% and -8.0% (the baseline's E_A was
+    +50%); error beyond the noise 0.0389 -> 0.0115 N (3.38x) and 0.897 ->
+    0.270 px (3.32x). Until the solver fix of that day the neo-Hookean truth
+    could not be solved beyond about 6.6 mm here, and the case pressed 6 mm
+    (displacement error 2.5x lower on fresh meshes, 8.2x on the committed ones)."""
+    exp = _make(tmp_path_factory, "hyper", 1, effects=("hyperelastic",), depth_mm=7.5, frames_at_mm=(0.0, 3.75, 7.5))
     d = diagnose(exp, candidates=("hyperelastic", "viscoelastic", "compressibility"), mesh_settings=ID_MESH)
     assert d.verdict == "hyperelastic", d.lines()
     c = d.candidate("hyperelastic")
@@ -130,7 +133,7 @@ def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_
     for region, err in _moduli_errors(c.parameters, read_truth(exp.path)["moduli_kPa"]).items():
         assert abs(err) < 0.10, (region, err, d.lines())
     assert c.misfit["force_excess_N"] < d.baseline.misfit["force_excess_N"] / 3.0, d.lines()
-    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 2.0, d.lines()
+    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
 
 
 def test_two_hidden_effects_are_found_one_after_the_other(tmp_path_factory):
