@@ -382,18 +382,13 @@ def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=N
     """The problem for a model: effects on the experiment (with an added inclusion region, if any)."""
     effects = check(effects)
     if inclusion is not None:
-        exp = _with_inclusion(exp, inclusion)
+        from app.core.geometry import Region
+
+        region = Region(inclusion["name"], "sphere", center_mm=tuple(inclusion["center_mm"]),
+                        radius_mm=float(inclusion["radius_mm"]))
+        exp = replace(exp, specimen=exp.specimen.with_region(region))
     return EffectProblem.from_experiment(exp, effects=effects, mesh_settings=mesh_settings, base=base,
                                          inclusion=inclusion, progress=progress, cancel=cancel, **kw)
-
-
-def _with_inclusion(exp, inclusion: dict):
-    """The experiment with an added inclusion's sphere among its regions."""
-    from app.core.geometry import Region
-
-    region = Region(inclusion["name"], "sphere", center_mm=tuple(inclusion["center_mm"]),
-                    radius_mm=float(inclusion["radius_mm"]))
-    return replace(exp, specimen=exp.specimen.with_region(region))
 
 
 class _InclusionPrep:

@@ -545,13 +545,7 @@ class HyperelasticModel:
     def _try_factor(self, data, ratios) -> _Preconditioner | None:
         """A factor of the tangent values ``data`` (into the spare factor), or None
         when the matrix is not positive definite (its inertia, from PARDISO)."""
-        p = self._scratch
-        if p is None:
-            p = _Preconditioner(self._factor(data), ratios, 1.0, False)
-        else:
-            p.factor.refactor(data)
-            self.n_factorizations += 1
-            p.ratios, p.scale, p.at_equilibrium = ratios, 1.0, False
+        p = self._factor_into(self._scratch, data, ratios, False)
         # indefinite: shift it towards its diagonal (a Levenberg-Marquardt step,
         # between Newton's and steepest descent's) until it is positive definite
         shift = 1e-3
