@@ -118,12 +118,11 @@ def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_
     cannot follow it. The diagnosis names hyperelastic; with it the moduli come
     right and the error beyond the noise falls at least 3x.
 
-    Measured on the committed meshes (2026-11-24): named first, pattern match
-    88%, the force stiffens 9%; moduli -1.0% and -8.0% (the baseline's E_A was
-    +50%); error beyond the noise 0.0389 -> 0.0115 N (3.38x) and 0.897 ->
-    0.270 px (3.32x). Until the solver fix of that day the neo-Hookean truth
-    could not be solved beyond about 6.6 mm here, and the case pressed 6 mm
-    (displacement error 2.5x lower on fresh meshes, 8.2x on the committed ones)."""
+    Measured on the committed meshes (2026-11-25, probe face meshed along its
+    outline): named first, pattern match 94%, the force stiffens 13%; moduli
+    -2.1% and -9.2% (the baseline's E_A was +51%); error beyond the noise falls
+    33x (force) and 4.3x (displacement). Before the outline was meshed: 3.4x and
+    3.3x, moduli -1.0% and -8.0%."""
     exp = _make(tmp_path_factory, "hyper", 1, effects=("hyperelastic",), depth_mm=7.5, frames_at_mm=(0.0, 3.75, 7.5))
     d = diagnose(exp, candidates=("hyperelastic", "viscoelastic", "compressibility"), mesh_settings=ID_MESH)
     assert d.verdict == "hyperelastic", d.lines()
@@ -206,10 +205,10 @@ def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_fa
     tolerance (the baseline's were off by 10-200% on these cases) and the
     displacement error (systematic misfit beyond the tracking noise) falls.
 
-    Measured over 12 runs on the earlier simulator (docs/model-check.md): named
-    first every time; the error fell at least 3x in 11 (1.8x in one probe-slip
-    run), so 2x is asserted. On the corrected simulator with these meshes:
-    probe-slip 5.0x, sliding-bottom 4.4x, compressibility to the noise."""
+    Measured on these meshes (2026-11-25, probe face meshed along its outline;
+    bench/diagnose_effects.py with IMG=192x180): probe-slip 7.7x, sliding-bottom
+    6.9x, compressibility to the noise (4.4x, 5.0x and to the noise before the
+    outline was meshed); the issue's 3x is asserted."""
     exp = _make(tmp_path_factory, effect, seed, **truth)
     d = diagnose(exp, candidates=IMAGE_CANDIDATES, mesh_settings=ID_MESH)
     assert d.verdict == effect, d.lines()
@@ -217,7 +216,7 @@ def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_fa
     assert c.material and c.signature >= 0.6, d.lines()
     for region, err in _moduli_errors(c.parameters, read_truth(exp.path)["moduli_kPa"]).items():
         assert abs(err) < tol[region], (region, err, d.lines())
-    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 2.0, d.lines()
+    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
     if effect == "compressibility":
         assert c.parameters["nu"] == pytest.approx(0.3, abs=0.08)
 
@@ -238,9 +237,9 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     for region, err in _moduli_errors(c.parameters, {"B": 15.0, "A": 45.0}).items():
         assert abs(err) < 0.10, (region, err, d.lines())
     # The located sphere (one of three radii, centre not refined) is meshed as a region; that mesh is
-    # committed too (tests/data/meshes), since fTetWild is not deterministic. On the corrected
-    # simulator the error beyond the noise fell 1.43x with the committed mesh (0.268 -> 0.187 px,
-    # 30.2% removed: just material), 1.88x on another, and on a third the candidate removed less
-    # than 30% and the verdict was none; on the earlier simulator 1.7x, and to within the noise on
-    # two fresh truth meshes. The issue asks for 3x: not met (docs/model-check.md).
-    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 1.25, d.lines()
+    # committed too (tests/data/meshes), since fTetWild is not deterministic. Measured on these meshes
+    # (2026-11-25): the error beyond the noise falls 6.2x (0.319 -> 0.052 px); the true sphere, given
+    # as a described region, leaves 0.102 px (bench/inclusion_floor.py). Before the probe face was
+    # meshed along its outline the same case fell 1.43x: the unbonded strip along the probe's edges,
+    # different in the truth's mesh and the model's, left an error no inclusion could remove.
+    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
