@@ -9,9 +9,11 @@ described region (its own mesh, its modulus fitted). Prints the error beyond the
 noise of the baseline, of the located sphere and of the true one: if the true
 sphere cannot lower it 3x, the located one cannot be expected to.
 
-Measured 2026-11-24 (seed 13), two runs (fTetWild's meshes differ run to run):
-baseline 0.268 / 0.223 px, located sphere 0.187 / 0.178 px, true sphere
-0.295 / 0.211 px (its fitted modulus 73 / 70 kPa against the truth's 60).
+Measured 2026-11-25 (seed 13) on the committed meshes (ELASTOID_CACHE_DIR holding
+tests/data/meshes): baseline 0.319 px, located sphere 0.052 px, true sphere 0.102 px
+(its fitted modulus 71 kPa against the truth's 60). Before the probe face was meshed
+along its outline (2026-11-24, fresh meshes): 0.268 / 0.223, 0.187 / 0.178 and
+0.295 / 0.211 px.
 """
 import sys
 import tempfile

@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import map_coordinates, spline_filter
 
 
 def _tps_kernel(r2: np.ndarray) -> np.ndarray:
@@ -124,6 +123,24 @@ class FastTPSField:
         return self.upsample(self.coarse(values))
 
 
+def bilinear(image: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of a 2-D array at (row, col) points, clamped to its
+    edges: scipy.ndimage.map_coordinates(image, [r, c], order=1, mode="nearest") to
+    1e-9 of a pixel at the border, about twice as fast (one gather per corner)."""
+    H, W = image.shape
+    flat = image.ravel()
+    r = np.clip(r, 0.0, H - 1 - 1e-9)
+    c = np.clip(c, 0.0, W - 1 - 1e-9)
+    i = r.astype(np.intp)
+    j = c.astype(np.intp)
+    fr, fc = r - i, c - j
+    k = i * W + j
+    a, b = flat[k], flat[k + 1]
+    top = a + fc * (b - a)
+    a, b = flat[k + W], flat[k + W + 1]
+    return top + fr * (a + fc * (b - a) - top)
+
+
 def _grid_points(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     R, C = np.meshgrid(rows, cols, indexing="ij")
     return np.column_stack([C.ravel(), R.ravel()])  # (col, row)
@@ -163,10 +180,13 @@ class FastWarp:
     """The fast warp of a source frame onto a target frame's ROI.
 
     The forward displacement delta is evaluated (exact TPS) on a coarse grid over
-    the whole source image; the inverse is found by fixed-point iteration on a
-    coarse grid over the target ROI, sampling delta with cubic splines, then
-    upsampled to every ROI pixel with separable cubic interpolation, and
-    ``polish`` fixed-point iterations at every pixel correct the upsampling.
+    the whole source image and carried to every source pixel by separable
+    Catmull-Rom interpolation (two small matrix products); the inverse is found by
+    fixed-point iteration on a coarse grid over the target ROI, sampling that
+    field bilinearly, then upsampled to every ROI pixel with separable cubic
+    interpolation, and ``polish`` fixed-point iterations at every pixel correct
+    the upsampling. (Until 2026-11-25 delta was sampled from the coarse grid with
+    cubic B-splines: as accurate against the exact TPS, three times slower.)
 
     Against the exact TPS inverse on every pixel of the demo's deep frame (the
     probe's edge in view, bench/core.py): without the polish the upsampled
@@ -181,6 +201,10 @@ class FastWarp:
         self.src_rows = np.arange(0, H - 1 + step, step, dtype=float)
         self.src_cols = np.arange(0, W - 1 + step, step, dtype=float)
         self.M = tps.matrix(_grid_points(self.src_rows, self.src_cols))
+        # the forward field is carried from the coarse grid to every source pixel by
+        # separable Catmull-Rom (two small matrix products), then sampled bilinearly:
+        # 4-5x cheaper per sample than cubic-spline sampling of the coarse grid
+        self.Usr, self.Usc = cubic_matrix(H, self.src_rows), cubic_matrix(W, self.src_cols)
         rows, cols = roi.shape
         # one extra coarse sample beyond each end: the cubic then needs no ghost values
         rq = np.arange(-step, rows - 1 + 2 * step, step, dtype=float)
@@ -196,14 +220,11 @@ class FastWarp:
         """Inverse displacement (rows, cols, 2) px on every ROI pixel, from control
         values (n, 2) px or from the forward field already on the coarse grid."""
         F = self.forward_coarse(values_px) if coarse is None else coarse
-        s = self.step
-        F0 = spline_filter(F[..., 0], order=3, mode="nearest")
-        F1 = spline_filter(F[..., 1], order=3, mode="nearest")
+        D0 = self.Usr @ F[..., 0] @ self.Usc.T  # (H, W) forward field on every source pixel
+        D1 = self.Usr @ F[..., 1] @ self.Usc.T
 
         def sample(r, c):
-            coords = np.stack([r / s, c / s])
-            return (map_coordinates(F0, coords, order=3, mode="nearest", prefilter=False),
-                    map_coordinates(F1, coords, order=3, mode="nearest", prefilter=False))
+            return bilinear(D0, r, c), bilinear(D1, r, c)
 
         e = _fixed_point_inverse(sample, self.q_rows, self.q_cols, self.iterations)
         e = np.stack([self.Ur @ e[..., k] @ self.Uc.T for k in (0, 1)], axis=-1)
@@ -217,7 +238,7 @@ class FastWarp:
 
     def __call__(self, source: np.ndarray, values_px=None, coarse=None) -> np.ndarray:
         r, c = self.sample_positions(values_px, coarse)
-        return map_coordinates(source, np.stack([r, c]), order=1, mode="nearest")
+        return bilinear(np.asarray(source, float), r, c)
 
 
 def exact_inverse(evaluate, image_shape, roi: WarpGrid, iterations: int = INVERSE_MAX_ITERATIONS) -> np.ndarray:

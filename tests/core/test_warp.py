@@ -93,8 +93,8 @@ def test_fast_warp_on_the_demo_deep_frame_within_a_tenth_of_a_pixel():
     """The FE field of the demo phantom at its deepest frame (14.8 mm; the probe's
     edges in view, where the displacement bends sharply): the fast inverse against
     the exact TPS evaluated at every pixel by scipy's RBFInterpolator, on the ROI.
-    Measured on this mesh 0.044 px (0.068 px without the per-pixel polish); on
-    bench/core.py's paper-size mesh 0.034 px (0.058 px without; 0.106 px on an earlier mesh)."""
+    Measured on this mesh 0.038 px (p99 0.010 px; 0.068 px without the per-pixel
+    polish); on bench/core.py's paper-size mesh 0.052 px (0.106 px on an earlier mesh)."""
     from app.core.experiment import read_experiment
     from app.core.identify import Problem
 
