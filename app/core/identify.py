@@ -37,6 +37,13 @@ CONTROL_SPACING_MM = 2.0
 # simplex to stall on) or "hard" (the paper's, equal to skimage's)
 SIMILARITIES = ("smooth", "hard")
 DISPLACEMENT_NOISE_PX = 0.25  # stated noise model of the image term (speckle-tracking precision)
+# the data-based standard errors: the ROI is cut into blocks of about this size,
+# whose speckle is taken as independent (several times the speckle size), dealt
+# into JACKKNIFE_GROUPS groups; the cost's derivatives by central differences of
+# this step in log-modulus
+JACKKNIFE_BLOCK_MM = 3.0
+JACKKNIFE_GROUPS = 16
+SANDWICH_STEP = 0.03
 _POOLS: ThreadpoolController | None = None
 
 
@@ -279,7 +286,118 @@ class Problem:
         fisher = Su.T @ Su / DISPLACEMENT_NOISE_PX**2
         if self.cost_kind == "joint":
             fisher = fisher + SF.T @ SF / sigma_F**2
-        return Identifiability.from_fisher(names, fisher, Su, SF, sigma_F, self.cost_kind)
+        ident = Identifiability.from_fisher(names, fisher, Su, SF, sigma_F, self.cost_kind)
+        try:
+            cov, unseen = self.data_covariance(params, unseen=[np.asarray(v) for v in ident.null_directions])
+        except (np.linalg.LinAlgError, ValueError):  # too few blocks, a degenerate Hessian
+            return ident
+        return ident.with_data_covariance(cov, unseen)
+
+    # --- standard errors from the data --------------------------------------------
+    def _jackknife_groups(self, pair) -> list:
+        """(kept pixel indices among the pair's masked ROI pixels, SmoothNMI on them)
+        for each group of blocks left out (built once per pair)."""
+        groups = getattr(pair, "_jackknife", None)
+        if groups is not None:
+            return groups
+        rows, cols = np.nonzero(pair.mask)
+        b_r = max(1, int(round(JACKKNIFE_BLOCK_MM / self._sr)))
+        b_c = max(1, int(round(JACKKNIFE_BLOCK_MM / self._sc)))
+        block = (rows // b_r) * (cols.max() // b_c + 1) + cols // b_c
+        ids, block = np.unique(block, return_inverse=True)
+        if len(ids) < 2 * JACKKNIFE_GROUPS:
+            raise ValueError(f"only {len(ids)} blocks of {JACKKNIFE_BLOCK_MM:g} mm in the ROI")
+        deal = np.random.default_rng(0).permutation(len(ids)) % JACKKNIFE_GROUPS
+        group = deal[block]
+        target = pair.target_roi[pair.mask]
+        lo, hi = float(pair.source_image.min()), float(pair.source_image.max())
+        groups = []
+        for g in range(JACKKNIFE_GROUPS):
+            keep = np.flatnonzero(group != g)
+            groups.append((keep, SmoothNMI(target[keep], self.bins, (lo, hi))))
+        pair._jackknife = groups
+        return groups
+
+    def _cost_parts(self, x: np.ndarray):
+        """At log-moduli ``x``: (image cost of all pixels, image cost with each group of
+        blocks left out (G,), force cost), with the smooth NMI estimator."""
+        params = self.complete(dict(zip(self.parameter_names, np.exp(x))))
+        theta = self.theta(params)
+        a = self.rm.coords(theta)
+        full, parts = [], []
+        for pair in self.pairs:
+            groups = self._jackknife_groups(pair)
+            full_nmi = getattr(pair, "_jackknife_full", None)
+            if full_nmi is None:
+                lo, hi = float(pair.source_image.min()), float(pair.source_image.max())
+                full_nmi = pair._jackknife_full = SmoothNMI(pair.target_roi[pair.mask], self.bins, (lo, hi))
+            w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))[pair.mask]
+            full.append(full_nmi(w))
+            parts.append([nmi(w[keep]) for keep, nmi in groups])
+        force = 0.0
+        if self.cost_kind == "joint":
+            frms = float(np.sqrt(np.mean((self.model_force_N(params, a) - self.log_F) ** 2)))
+            force = self.force_weight * (frms / self.force_scale_N) ** 2
+        return -float(np.mean(full)), -np.mean(np.array(parts), axis=0), force
+
+    def data_covariance(self, params: dict, unseen=()) -> tuple[np.ndarray, list]:
+        """Covariance of the log-moduli at an optimum from the data (the sandwich
+        H^-1 V H^-1 of an M-estimator): H, the cost's Hessian, by central
+        differences; V, the variance of the cost's gradient: for the image term by
+        the delete-a-group jackknife over groups of ROI blocks (speckle in separate
+        blocks independent; nothing else assumed about the image noise), for the
+        force term from independent noise of the log's estimated sigma per sample.
+        ``unseen``: directions of the log-moduli the cost does not depend on (the
+        overall level with the NMI-only cost: the sensitivities' null space); the
+        Hessian is inverted on their complement (finite differences leave a few
+        percent of curvature along them). Returns (covariance within the directions
+        the cost sees, the unseen directions plus any the Hessian shows flat)."""
+        x0 = np.log(self.theta(self.complete(params)))
+        n, h = len(x0), SANDWICH_STEP
+        E = np.eye(n) * h
+        total = lambda x: (lambda c: c[0] + c[2])(self._cost_parts(x))
+        with single_threaded_blas():
+            f0 = total(x0)
+            H = np.zeros((n, n))
+            grads = []
+            plus_minus = {}
+            for i in range(n):
+                plus_minus[i] = (self._cost_parts(x0 + E[i]), self._cost_parts(x0 - E[i]))
+                (ip, jp, fp), (im, jm, fm) = plus_minus[i]
+                H[i, i] = (ip + fp - 2 * f0 + im + fm) / h**2
+                grads.append((jp - jm) / (2 * h))  # (G,) image gradient with each group left out
+            for i in range(n):
+                for j in range(i + 1, n):
+                    fpp = total(x0 + E[i] + E[j])
+                    fmm = total(x0 - E[i] - E[j])
+                    fpm = total(x0 + E[i] - E[j])
+                    fmp = total(x0 - E[i] + E[j])
+                    H[i, j] = H[j, i] = (fpp - fpm - fmp + fmm) / (4 * h * h)
+            G = np.column_stack(grads)  # (groups, n)
+            k = len(G)
+            D = G - G.mean(axis=0)
+            V = (k - 1) / k * D.T @ D
+            if self.cost_kind == "joint" and np.isfinite(self.force_sigma_N) and self.force_sigma_N > 0:
+                theta = np.exp(x0)
+                S = []
+                for i in range(n):
+                    F_p = self.model_force_N(self.complete(dict(zip(self.parameter_names, theta * np.exp(h * np.eye(n)[i])))))
+                    F_m = self.model_force_N(self.complete(dict(zip(self.parameter_names, theta * np.exp(-h * np.eye(n)[i])))))
+                    S.append((F_p - F_m) / (2 * h))
+                S = np.column_stack(S)
+                c = 2 * self.force_weight / (len(self.log_F) * self.force_scale_N**2)
+                V = V + c * c * self.force_sigma_N**2 * S.T @ S
+        # the directions the cost sees: the complement of the unseen ones
+        N = np.array([np.asarray(u, float) / np.linalg.norm(u) for u in unseen]).reshape(-1, n)
+        U, sv, _ = np.linalg.svd(np.eye(n) - N.T @ N)
+        B = U[:, sv > 0.5]
+        w, Q = np.linalg.eigh(B.T @ (0.5 * (H + H.T)) @ B)
+        if len(w) == 0 or w.max() <= 0:
+            raise ValueError("the cost has no curvature at this point")
+        good = w > 1e-6 * w.max()
+        Bq = B @ Q
+        Hinv = (Bq[:, good] / w[good]) @ Bq[:, good].T
+        return Hinv @ V @ Hinv, list(N) + [Bq[:, i] for i in np.flatnonzero(~good)]
 
     def _observables(self, theta):
         a = self.rm.coords(theta)
@@ -301,6 +419,10 @@ class Identifiability:
     force_sensitivity_N: dict  # max force change (N) for a 10% change
     null_directions: list
     noise_model: str
+    # from the data (Problem.data_covariance): relative standard errors, and of each
+    # modulus ratio to the first region's; None when not computed
+    standard_error_rel_data: dict | None = None
+    ratio_standard_error_rel_data: dict | None = None
 
     @classmethod
     def from_fisher(cls, names, fisher, Su, SF, sigma_F, cost_kind):
@@ -331,13 +453,52 @@ class Identifiability:
                                   for i, n in enumerate(names)},
                    corr, flags, img, frc, [v.tolist() for v in null], noise)
 
+    def with_data_covariance(self, cov: np.ndarray, unseen=()) -> "Identifiability":
+        """This report with standard errors from the data (``cov``: covariance of the
+        log-moduli within the directions the cost sees; ``unseen``: the others, along
+        which the variance is infinite): they become the flags' basis, and the ratios
+        to the first region's modulus get theirs."""
+        from dataclasses import replace
+
+        def se_of(direction):
+            if any(abs(float(np.dot(direction, u))) > 1e-3 for u in unseen):
+                return float("inf")
+            return float(np.sqrt(max(float(direction @ cov @ direction), 0.0)))
+
+        n = len(self.names)
+        eye = np.eye(n)
+        data = {name: se_of(eye[i]) for i, name in enumerate(self.names)}
+        ratios = {f"{self.names[i]}/{self.names[0]}": se_of(eye[i] - eye[0]) for i in range(1, n)}
+        flags = dict(self.flags)
+        for n, v in data.items():
+            if flags[n].startswith("unconstrained"):
+                continue
+            if not np.isfinite(v) or v > 0.25:
+                flags[n] = f"weakly constrained by the data (+/-{100 * v:.0f}%)" if np.isfinite(v) else \
+                    "not constrained by the data"
+            elif v > 0.05:
+                flags[n] = f"ok, within +/-{100 * v:.0f}% (one standard error)"
+            else:
+                flags[n] = "ok"
+        return replace(self, standard_error_rel_data=data, ratio_standard_error_rel_data=ratios, flags=flags)
+
     def lines(self) -> list[str]:
         out = [f"noise model: {self.noise_model}"]
+        if self.standard_error_rel_data is not None:
+            out.append(f"standard errors from the data: the speckle of separate {JACKKNIFE_BLOCK_MM:g} mm blocks of "
+                       f"the ROI taken as independent (jackknife over {JACKKNIFE_GROUPS} groups of blocks)"
+                       + ("; the force's noise as above" if "force term" in self.noise_model else ""))
         for n in self.names:
             se = self.standard_error_rel[n]
             se_s = "undetermined" if not np.isfinite(se) else f"+/-{100 * se:.1f}%"
+            if self.standard_error_rel_data is not None:
+                sd = self.standard_error_rel_data[n]
+                se_s = ("undetermined by the data" if not np.isfinite(sd) else f"+/-{100 * sd:.1f}% from the data") \
+                    + f" ({se_s} from the noise model)"
             out.append(f"{n}: {se_s}; 10% change moves the image by {self.image_sensitivity_px[n]:.2f} px "
                        f"and the force by {self.force_sensitivity_N[n]:.3f} N; {self.flags[n]}")
+        for r, v in (self.ratio_standard_error_rel_data or {}).items():
+            out.append(f"ratio {r}: +/-{100 * v:.1f}% from the data" if np.isfinite(v) else f"ratio {r}: undetermined")
         for v in self.null_directions:
             if np.allclose(np.abs(v), abs(v[0]), atol=1e-3):
                 out.append("the images cannot tell the overall stiffness level (all moduli scaled together): "
@@ -351,7 +512,12 @@ class Identifiability:
         return out
 
     def to_dict(self) -> dict:
-        return {"standard_error_rel": {k: (None if not np.isfinite(v) else v) for k, v in self.standard_error_rel.items()},
+        def finite(d):
+            return None if d is None else {k: (None if not np.isfinite(v) else v) for k, v in d.items()}
+
+        return {"standard_error_rel": finite(self.standard_error_rel),
+                "standard_error_rel_data": finite(self.standard_error_rel_data),
+                "ratio_standard_error_rel_data": finite(self.ratio_standard_error_rel_data),
                 "flags": self.flags, "image_sensitivity_px": self.image_sensitivity_px,
                 "force_sensitivity_N": self.force_sensitivity_N, "correlation": self.correlation.tolist(),
                 "noise_model": self.noise_model}

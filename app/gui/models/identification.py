@@ -176,7 +176,10 @@ class IdentificationJob:
             evaluations=int(getattr(result, "evaluations", self.evaluations)),
             seconds=float(getattr(result, "seconds", 0.0)),
             identifiability=tuple(ident.lines()) if ident is not None else (),
-            standard_error_rel=dict(getattr(ident, "standard_error_rel", {}) or {}),
+            # the standard errors from the data when the report has them (the stated
+            # 0.25 px noise model understates the scatter of the estimates)
+            standard_error_rel=dict(getattr(ident, "standard_error_rel_data", None)
+                                    or getattr(ident, "standard_error_rel", {}) or {}),
             flags=dict(getattr(ident, "flags", {}) or {}),
             starts=tuple(_start_summary(s) for s in (getattr(result, "starts", None) or ())),
             settings=self.settings,
