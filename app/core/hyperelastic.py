@@ -193,6 +193,7 @@ class HyperelasticModel:
         z = fe.space.points_mm[:, 2]
         self.height_mm = float(z.max() - z.min())
         self.tol, self.max_iterations, self.depth = tol, max_iterations, anderson_depth
+        self._ordering = None  # the tangents' fill-reducing permutation, from the first factor
         self.reform_rate, self.single = reform_rate, single
         space = fe.space
         self.elems = space.elems
@@ -307,7 +308,9 @@ class HyperelasticModel:
 
     def _factor(self, data) -> SymmetricFactor:
         self.n_factorizations += 1
-        return SymmetricFactor(self._upper_matrix(data), single=self.single)
+        f = SymmetricFactor(self._upper_matrix(data), single=self.single, ordering=self._ordering)
+        self._ordering = f.ordering  # every tangent has the same pattern: METIS once
+        return f
 
     def free(self) -> None:
         for p in self._cache.values():

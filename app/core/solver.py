@@ -119,9 +119,14 @@ class SymmetricFactor:
     MKL it falls back to :class:`app.core.solver.Factorized` (double precision).
     """
 
-    def __init__(self, upper: sp.csr_matrix, single: bool = True, definite: bool = False):
+    def __init__(self, upper: sp.csr_matrix, single: bool = True, definite: bool = False,
+                 ordering: np.ndarray | None = None):
+        """``ordering``: the fill-reducing permutation of an earlier factor of a matrix
+        with the same pattern (its :attr:`ordering`), which skips METIS (about half
+        of the analysis)."""
         self.n = upper.shape[0]
         self._fallback = None
+        self.ordering = None
         if not HAVE_PARDISO:
             self._upper = sp.csr_matrix(upper)
             self._fallback = Factorized(self._upper + sp.triu(self._upper, 1).T)
@@ -132,11 +137,18 @@ class SymmetricFactor:
         self._s = pypardiso.PyPardisoSolver(mtype=self.mtype)
         _configure(self._s, single)
         self._s.iparm[9] = 8  # pivot perturbation 1e-8
+        if ordering is not None and len(ordering) == self.n:
+            self._s.iparm[4] = 1  # the permutation is given
+            self._s.perm = np.ascontiguousarray(ordering, np.int32)
+        else:
+            self._s.iparm[4] = 2  # return the permutation METIS computed
+            self._s.perm = np.zeros(self.n, np.int32)
         self.dtype = np.float32 if single else np.float64
         self._ia = (upper.indptr + 1).astype(np.int32)
         self._ja = (upper.indices + 1).astype(np.int32)
         self._data = upper.data.astype(self.dtype)
         self._call(11, np.zeros(self.n, self.dtype))
+        self.ordering = self._s.perm.copy()
         self._call(22, np.zeros(self.n, self.dtype))
 
     def _call(self, phase: int, b: np.ndarray) -> np.ndarray:

@@ -6,7 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from app.core.geometry import Region
-from app.core.simulate import SyntheticSpec, simulate_experiment
+from app.core.mesh import MeshSettings
+from app.core.simulate import SyntheticSpec, read_truth, simulate_experiment
 
 GEOMETRIES = {
     # a stiff sphere (the paper's case, scaled down so tests stay fast)
@@ -53,6 +54,61 @@ def committed(geometry: str, seed: int) -> Path:
     return folder
 
 
+# The hidden-effect experiments of tests/core/test_diagnose.py: a 40 x 40 x 30 mm
+# phantom with a stiff sphere, truth on a mesh 0.7 of the identification mesh's
+# size. Simulating one takes about 12 s, the neo-Hookean truth about 80 s: the
+# suite reads them from tests/data/experiments/diagnose instead (written by
+# ``python -m tests.core.synthetic``, the same simulator).
+DIAGNOSE_ID_MESH = MeshSettings(edge_mm=6.0, probe_edge_mm=2.5, region_edge_mm=2.5)
+DIAGNOSE_BASE = dict(size_mm=(40.0, 40.0, 30.0),
+                     regions=(Region("B", "background"),
+                              Region("A", "sphere", center_mm=(20.0, 20.0, 18.0), radius_mm=7.0)),
+                     moduli_kPa={"B": 15.0, "A": 45.0}, face_mm=(24.0, 8.0), depth_mm=5.0,
+                     frames_at_mm=(0.0, 2.5, 5.0), image_shape=(192, 180),
+                     truth_mesh=DIAGNOSE_ID_MESH.with_scale(0.7))
+# name -> (seed, what differs from DIAGNOSE_BASE)
+DIAGNOSE_CASES = {
+    "visco": (4, dict(effects=("viscoelastic",), g1=0.35, tau1_s=2.0, hold_s=6.0)),
+    "none-5": (5, {}),
+    "none-6": (6, {}),
+    "hyper": (1, dict(effects=("hyperelastic",), depth_mm=7.5, frames_at_mm=(0.0, 3.75, 7.5))),
+    "two": (3, dict(effects=("viscoelastic", "sliding-bottom"))),
+    "sliding-bottom": (13, dict(effects=("sliding-bottom",))),
+    "probe-slip": (14, dict(effects=("probe-slip",))),
+    "compressibility": (14, dict(nu=0.3)),
+    "inclusion": (13, dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),),
+                           moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})),
+}
+DIAGNOSE_DIR = COMMITTED / "diagnose"
+
+
+def diagnose_spec(name: str) -> SyntheticSpec:
+    seed, kw = DIAGNOSE_CASES[name]
+    return SyntheticSpec(seed=seed, **{**DIAGNOSE_BASE, **kw})
+
+
+def diagnose_case(name: str) -> Path:
+    """The committed hidden-effect experiment ``name`` of DIAGNOSE_CASES, checked
+    against its spec (seed, effects, moduli, Poisson's ratio in truth.toml)."""
+    folder = DIAGNOSE_DIR / name
+    if not (folder / "experiment.toml").is_file():
+        raise FileNotFoundError(f"{folder}: not committed; write it with `python -m tests.core.synthetic`")
+    spec, truth = diagnose_spec(name), read_truth(folder)
+    recorded = (truth["seed"], tuple(truth["effects"]), truth["moduli_kPa"], truth["nu"])
+    wanted = (spec.seed, tuple(spec.effects), dict(spec.moduli_kPa), spec.nu)
+    if recorded != wanted:
+        raise AssertionError(f"{folder / 'truth.toml'}: written for {recorded}, the case is {wanted}; "
+                             f"write it again with `python -m tests.core.synthetic`")
+    return folder
+
+
 if __name__ == "__main__":  # python -m tests.core.synthetic: write the committed experiments again
+    import sys
+
+    only = set(sys.argv[1:])
     for g, s in COMMITTED_CASES:
-        print(make(COMMITTED / f"{g}-seed{s}", g, s)[0])
+        if not only or f"{g}-seed{s}" in only:
+            print(make(COMMITTED / f"{g}-seed{s}", g, s)[0], flush=True)
+    for name in DIAGNOSE_CASES:
+        if not only or name in only:
+            print(simulate_experiment(DIAGNOSE_DIR / name, diagnose_spec(name), overwrite=True), flush=True)

@@ -6,16 +6,21 @@ Meshes are coarse on purpose (a few thousand vertices) to keep the suite short,
 and the candidate lists leave out hyperelastic (it refits a neo-Hookean model)
 except in its own hidden-effect test.
 
-The meshes are fixed: fTetWild is not deterministic, and on fresh meshes the
-outcome of a case varies from run to run (the spread over fresh meshes is
-measured by bench/diagnose_effects.py and reported in docs/model-check.md). The
-identification mesh and the truth meshes these tests use are in
-tests/data/meshes, named by their cache key, and copied into the mesh cache
-by tests/conftest.py, so a run is reproducible. After a change to meshing (MESH_VERSION) the
-keys change: the fixture says so; regenerate them by running this file with an
-empty cache and copying the new files from the cache.
+The experiments and meshes are fixed. The experiments (tests/data/experiments/
+diagnose, the cases of synthetic.DIAGNOSE_CASES) were written by the simulator
+with ``python -m tests.core.synthetic``: simulating them took about 3 minutes of
+the suite (the neo-Hookean truth 80 s). fTetWild is not deterministic, and on
+fresh meshes the outcome of a case varies from run to run (the spread over fresh
+meshes is measured by bench/diagnose_effects.py and reported in
+docs/model-check.md). The identification mesh and the truth meshes are in
+tests/data/meshes, named by their cache key, and copied into the mesh cache by
+tests/conftest.py, so a run is reproducible. After a change to meshing
+(MESH_VERSION) the keys change: the fixture says so; regenerate the meshes by
+running this file with an empty cache and copying the new files from the cache,
+then write the experiments again.
 """
 
+import shutil
 import threading
 from pathlib import Path
 
@@ -24,15 +29,11 @@ import pytest
 
 from app.core.diagnose import ModelCheck, ModelHistory, diagnose
 from app.core.experiment import read_experiment
-from app.core.geometry import Region
-from app.core.mesh import MeshSettings
-from app.core.simulate import SyntheticSpec, read_truth, simulate_experiment
+from app.core.simulate import read_truth
+from tests.core import synthetic
 
-ID_MESH = MeshSettings(edge_mm=6.0, probe_edge_mm=2.5, region_edge_mm=2.5)
-BASE = dict(size_mm=(40.0, 40.0, 30.0),
-            regions=(Region("B", "background"), Region("A", "sphere", center_mm=(20.0, 20.0, 18.0), radius_mm=7.0)),
-            moduli_kPa={"B": 15.0, "A": 45.0}, face_mm=(24.0, 8.0), depth_mm=5.0, frames_at_mm=(0.0, 2.5, 5.0),
-            image_shape=(192, 180), truth_mesh=ID_MESH.with_scale(0.7))
+ID_MESH = synthetic.DIAGNOSE_ID_MESH
+BASE = synthetic.DIAGNOSE_BASE
 FAST = ("viscoelastic", "sliding-bottom", "probe-slip")
 
 
@@ -48,9 +49,10 @@ def _check_fixed(exp):
         f"tests/data/meshes has no mesh {key}.npz: meshing changed (MESH_VERSION); regenerate the fixed meshes")
 
 
-def _make(tmp_path_factory, name, seed, **kw):
-    folder = tmp_path_factory.mktemp(f"{name}{seed}") / "exp"
-    simulate_experiment(folder, SyntheticSpec(seed=seed, **{**BASE, **kw}), overwrite=True)
+def _make(tmp_path_factory, name):
+    """A copy of the committed hidden-effect experiment ``name`` (synthetic.DIAGNOSE_CASES)."""
+    folder = tmp_path_factory.mktemp(name) / "exp"
+    shutil.copytree(synthetic.diagnose_case(name), folder)
     exp = read_experiment(folder)
     _check_fixed(exp)
     return exp
@@ -62,7 +64,7 @@ def _moduli_errors(params, truth):
 
 @pytest.fixture(scope="module")
 def visco(tmp_path_factory):
-    exp = _make(tmp_path_factory, "visco", 4, effects=("viscoelastic",), g1=0.35, tau1_s=2.0, hold_s=6.0)
+    exp = _make(tmp_path_factory, "visco")
     return exp, diagnose(exp, candidates=FAST, mesh_settings=ID_MESH)
 
 
@@ -85,7 +87,7 @@ def test_hidden_viscoelasticity_is_named_and_adding_it_fixes_the_model(visco):
 
 @pytest.mark.parametrize("seed", [5, 6])
 def test_no_hidden_effect_gives_none(tmp_path_factory, seed):
-    exp = _make(tmp_path_factory, "none", seed)
+    exp = _make(tmp_path_factory, f"none-{seed}")
     d = diagnose(exp, candidates=FAST, mesh_settings=ID_MESH)
     assert d.verdict == "none", d.lines()
     # nothing material: whatever scores above zero explains little of the error beyond the noise
@@ -123,7 +125,7 @@ def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_
     -2.1% and -9.2% (the baseline's E_A was +51%); error beyond the noise falls
     33x (force) and 4.3x (displacement). Before the outline was meshed: 3.4x and
     3.3x, moduli -1.0% and -8.0%."""
-    exp = _make(tmp_path_factory, "hyper", 1, effects=("hyperelastic",), depth_mm=7.5, frames_at_mm=(0.0, 3.75, 7.5))
+    exp = _make(tmp_path_factory, "hyper")  # neo-Hookean truth pressed 7.5 mm (seed 1)
     d = diagnose(exp, candidates=("hyperelastic", "viscoelastic", "compressibility"), mesh_settings=ID_MESH)
     assert d.verdict == "hyperelastic", d.lines()
     c = d.candidate("hyperelastic")
@@ -142,7 +144,7 @@ def test_two_hidden_effects_are_found_one_after_the_other(tmp_path_factory):
     +170%). Measured on fresh meshes (bench/diagnose_effects.py
     viscoelastic+sliding-bottom 3): viscoelastic then sliding-bottom, moduli
     within 6%, force error beyond the noise 7.1x lower, displacement error 6.4x."""
-    exp = _make(tmp_path_factory, "two", 3, effects=("viscoelastic", "sliding-bottom"))
+    exp = _make(tmp_path_factory, "two")  # viscoelastic and sliding-bottom (seed 3)
     mc = ModelCheck(exp, mesh_settings=ID_MESH)
     mc.identify(())
     first = mc.diagnose(candidates=FAST)
@@ -185,19 +187,21 @@ def test_diagnose_stops_when_cancelled(visco):
 
 
 IMAGE_CANDIDATES = ("sliding-bottom", "probe-slip", "compressibility", "viscoelastic")
-# (effect, seed, truth, moduli tolerance {region: relative} with the effect added).
+# (effect, moduli tolerance {region: relative} with the effect added); the truths
+# are synthetic.DIAGNOSE_CASES[effect] (sliding-bottom seed 13, probe-slip seed 14,
+# Poisson's ratio 0.3 seed 14).
 # Measured with bench/diagnose_effects.py (IMG=192x180, fresh meshes each run,
 # on the simulator before its echo phase was fixed):
 # with sliding-bottom added E_B came within 3% in 7 of 7 runs and E_A within 8%
 # in 6 of 7 (+17% in one: once the bottom slides, the field barely depends on
 # the 7 mm inclusion, and mesh-to-mesh differences move it), so E_A holds 20%.
-IMAGE_CASES = [("sliding-bottom", 13, dict(effects=("sliding-bottom",)), {"B": 0.10, "A": 0.20}),
-               ("probe-slip", 14, dict(effects=("probe-slip",)), {"B": 0.10, "A": 0.10}),
-               ("compressibility", 14, dict(nu=0.3), {"B": 0.10, "A": 0.10})]
+IMAGE_CASES = [("sliding-bottom", {"B": 0.10, "A": 0.20}),
+               ("probe-slip", {"B": 0.10, "A": 0.10}),
+               ("compressibility", {"B": 0.10, "A": 0.10})]
 
 
-@pytest.mark.parametrize("effect,seed,truth,tol", IMAGE_CASES, ids=[c[0] for c in IMAGE_CASES])
-def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_factory, effect, seed, truth, tol):
+@pytest.mark.parametrize("effect,tol", IMAGE_CASES, ids=[c[0] for c in IMAGE_CASES])
+def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_factory, effect, tol):
     """The truth has an effect the baseline lacks and that shows in the images
     (the specimen slides on the table, the probe slides on the surface, the
     tissue is compressible). The baseline's misfit has the pattern the effect
@@ -209,7 +213,7 @@ def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_fa
     bench/diagnose_effects.py with IMG=192x180): probe-slip 7.7x, sliding-bottom
     6.9x, compressibility to the noise (4.4x, 5.0x and to the noise before the
     outline was meshed); the issue's 3x is asserted."""
-    exp = _make(tmp_path_factory, effect, seed, **truth)
+    exp = _make(tmp_path_factory, effect)
     d = diagnose(exp, candidates=IMAGE_CANDIDATES, mesh_settings=ID_MESH)
     assert d.verdict == effect, d.lines()
     c = d.candidate(effect)
@@ -226,9 +230,8 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     sensitivity scan puts the new region within 3 mm of it, the diagnosis names
     it, the error beyond the noise falls, and the described moduli stay right."""
     c_true = np.array([26.0, 20.0, 14.0])
-    exp = _make(tmp_path_factory, "inclusion", 13,
-                hidden_regions=(Region("C", "sphere", center_mm=tuple(c_true), radius_mm=4.0),),
-                moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})
+    exp = _make(tmp_path_factory, "inclusion")  # seed 13
+    assert read_truth(exp.path)["hidden_regions"][0]["center_mm"] == list(c_true)
     d = diagnose(exp, candidates=("inclusion", "probe-slip"), mesh_settings=ID_MESH)
     assert d.verdict == "inclusion", d.lines()
     c = d.candidate("inclusion")
