@@ -58,7 +58,7 @@ def _read_raw(path: Path, field: str):
         else:
             import imageio.v3 as iio
 
-            arr = iio.imread(path)
+            arr = iio.imread(path, plugin="pillow")  # PNG (8 or 16 bit); no guessing among plugins
     except Exception as exc:
         raise ExperimentError(path, field, f"cannot be decoded as an image: {exc}") from None
     return np.asarray(arr), None
