@@ -56,13 +56,13 @@ def main(argv=None) -> int:
         res = identify(problem)
         truth = spec.moduli_kPa
         ident = res.identifiability
-        names = problem.parameter_names
+        names, regions = problem.parameter_names, problem.region_names  # E_<region>_kPa, <region>
         ratio_name = f"{names[1]}/{names[0]}"
         ratio = res.parameters[names[1]] / res.parameters[names[0]]
         rows.append({
             "seed": seed,
-            "err": {n: res.parameters[n] / truth[n[2:-4]] - 1 for n in names},
-            "ratio_err": ratio / (truth[names[1][2:-4]] / truth[names[0][2:-4]]) - 1,
+            "err": {n: res.parameters[n] / truth[r] - 1 for n, r in zip(names, regions)},
+            "ratio_err": ratio / (truth[regions[1]] / truth[regions[0]]) - 1,
             "se_data": ident.standard_error_rel_data,
             "se_ratio_data": ident.ratio_standard_error_rel_data[ratio_name],
             "se_model": ident.standard_error_rel,

@@ -294,12 +294,12 @@ class Problem:
         return ident.with_data_covariance(cov, unseen)
 
     # --- standard errors from the data --------------------------------------------
-    def _jackknife_groups(self, pair) -> list:
-        """(kept pixel indices among the pair's masked ROI pixels, SmoothNMI on them)
-        for each group of blocks left out (built once per pair)."""
-        groups = getattr(pair, "_jackknife", None)
-        if groups is not None:
-            return groups
+    def _jackknife_groups(self, pair) -> tuple:
+        """(smooth NMI on all the pair's masked ROI pixels, [(kept pixel indices, smooth
+        NMI on them) for each group of blocks left out]), built once per pair."""
+        cached = getattr(pair, "_jackknife", None)
+        if cached is not None:
+            return cached
         rows, cols = np.nonzero(pair.mask)
         b_r = max(1, int(round(JACKKNIFE_BLOCK_MM / self._sr)))
         b_c = max(1, int(round(JACKKNIFE_BLOCK_MM / self._sc)))
@@ -307,38 +307,34 @@ class Problem:
         ids, block = np.unique(block, return_inverse=True)
         if len(ids) < 2 * JACKKNIFE_GROUPS:
             raise ValueError(f"only {len(ids)} blocks of {JACKKNIFE_BLOCK_MM:g} mm in the ROI")
-        deal = np.random.default_rng(0).permutation(len(ids)) % JACKKNIFE_GROUPS
-        group = deal[block]
+        group = (np.random.default_rng(0).permutation(len(ids)) % JACKKNIFE_GROUPS)[block]
         target = pair.target_roi[pair.mask]
-        lo, hi = float(pair.source_image.min()), float(pair.source_image.max())
-        groups = []
-        for g in range(JACKKNIFE_GROUPS):
-            keep = np.flatnonzero(group != g)
-            groups.append((keep, SmoothNMI(target[keep], self.bins, (lo, hi))))
-        pair._jackknife = groups
-        return groups
+        span = (float(pair.source_image.min()), float(pair.source_image.max()))
+        # the cost's own estimator when it is the smooth one (the derivatives need it smooth)
+        full = pair.nmi if isinstance(pair.nmi, SmoothNMI) else SmoothNMI(target, self.bins, span)
+        parts = [(keep, SmoothNMI(target[keep], self.bins, span))
+                 for keep in (np.flatnonzero(group != g) for g in range(JACKKNIFE_GROUPS))]
+        pair._jackknife = (full, parts)
+        return pair._jackknife
 
     def _cost_parts(self, x: np.ndarray):
-        """At log-moduli ``x``: (image cost of all pixels, image cost with each group of
-        blocks left out (G,), force cost), with the smooth NMI estimator."""
+        """At log-moduli ``x``, with the smooth NMI estimator: (image cost of all
+        pixels, image cost with each group of blocks left out (G,), force cost, the
+        model's force over the log)."""
         params = self.complete(dict(zip(self.parameter_names, np.exp(x))))
-        theta = self.theta(params)
-        a = self.rm.coords(theta)
+        a = self.rm.coords(self.theta(params))
         full, parts = [], []
         for pair in self.pairs:
-            groups = self._jackknife_groups(pair)
-            full_nmi = getattr(pair, "_jackknife_full", None)
-            if full_nmi is None:
-                lo, hi = float(pair.source_image.min()), float(pair.source_image.max())
-                full_nmi = pair._jackknife_full = SmoothNMI(pair.target_roi[pair.mask], self.bins, (lo, hi))
+            full_nmi, groups = self._jackknife_groups(pair)
             w = pair.warp(pair.source_image, coarse=self._coarse_field(pair, a))[pair.mask]
             full.append(full_nmi(w))
             parts.append([nmi(w[keep]) for keep, nmi in groups])
+        F = self.model_force_N(params, a)
         force = 0.0
         if self.cost_kind == "joint":
-            frms = float(np.sqrt(np.mean((self.model_force_N(params, a) - self.log_F) ** 2)))
+            frms = float(np.sqrt(np.mean((F - self.log_F) ** 2)))
             force = self.force_weight * (frms / self.force_scale_N) ** 2
-        return -float(np.mean(full)), -np.mean(np.array(parts), axis=0), force
+        return -float(np.mean(full)), -np.mean(np.array(parts), axis=0), force, F
 
     def data_covariance(self, params: dict, unseen=()) -> tuple[np.ndarray, list]:
         """Covariance of the log-moduli at an optimum from the data (the sandwich
@@ -355,17 +351,17 @@ class Problem:
         x0 = np.log(self.theta(self.complete(params)))
         n, h = len(x0), SANDWICH_STEP
         E = np.eye(n) * h
-        total = lambda x: (lambda c: c[0] + c[2])(self._cost_parts(x))
+
+        def total(x):
+            image, _, force, _ = self._cost_parts(x)
+            return image + force
+
         with single_threaded_blas():
             f0 = total(x0)
             H = np.zeros((n, n))
-            grads = []
-            plus_minus = {}
-            for i in range(n):
-                plus_minus[i] = (self._cost_parts(x0 + E[i]), self._cost_parts(x0 - E[i]))
-                (ip, jp, fp), (im, jm, fm) = plus_minus[i]
+            plus_minus = [(self._cost_parts(x0 + E[i]), self._cost_parts(x0 - E[i])) for i in range(n)]
+            for i, ((ip, jp, fp, _), (im, jm, fm, _)) in enumerate(plus_minus):
                 H[i, i] = (ip + fp - 2 * f0 + im + fm) / h**2
-                grads.append((jp - jm) / (2 * h))  # (G,) image gradient with each group left out
             for i in range(n):
                 for j in range(i + 1, n):
                     fpp = total(x0 + E[i] + E[j])
@@ -373,20 +369,15 @@ class Problem:
                     fpm = total(x0 + E[i] - E[j])
                     fmp = total(x0 - E[i] + E[j])
                     H[i, j] = H[j, i] = (fpp - fpm - fmp + fmm) / (4 * h * h)
-            G = np.column_stack(grads)  # (groups, n)
-            k = len(G)
-            D = G - G.mean(axis=0)
-            V = (k - 1) / k * D.T @ D
-            if self.cost_kind == "joint" and np.isfinite(self.force_sigma_N) and self.force_sigma_N > 0:
-                theta = np.exp(x0)
-                S = []
-                for i in range(n):
-                    F_p = self.model_force_N(self.complete(dict(zip(self.parameter_names, theta * np.exp(h * np.eye(n)[i])))))
-                    F_m = self.model_force_N(self.complete(dict(zip(self.parameter_names, theta * np.exp(-h * np.eye(n)[i])))))
-                    S.append((F_p - F_m) / (2 * h))
-                S = np.column_stack(S)
-                c = 2 * self.force_weight / (len(self.log_F) * self.force_scale_N**2)
-                V = V + c * c * self.force_sigma_N**2 * S.T @ S
+        # (groups, n): the image term's gradient with each group of blocks left out
+        G = np.column_stack([(p[1] - m[1]) / (2 * h) for p, m in plus_minus])
+        k = len(G)
+        D = G - G.mean(axis=0)
+        V = (k - 1) / k * D.T @ D
+        if self.cost_kind == "joint" and np.isfinite(self.force_sigma_N) and self.force_sigma_N > 0:
+            S = np.column_stack([(p[3] - m[3]) / (2 * h) for p, m in plus_minus])  # dF/dlog(E)
+            c = 2 * self.force_weight / (len(self.log_F) * self.force_scale_N**2)
+            V = V + c * c * self.force_sigma_N**2 * S.T @ S
         # the directions the cost sees: the complement of the unseen ones
         N = np.array([np.asarray(u, float) / np.linalg.norm(u) for u in unseen]).reshape(-1, n)
         U, sv, _ = np.linalg.svd(np.eye(n) - N.T @ N)
