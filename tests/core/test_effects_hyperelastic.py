@@ -126,3 +126,41 @@ def test_the_equilibrium_does_not_depend_on_the_requested_travels_on_the_way():
     f = hm.internal_force(stops.fields[-1], mu, lam)
     assert np.linalg.norm(f[fe.free]) < 1e-5 * np.linalg.norm(f[fe.fixed])
     hm.free()
+
+
+def test_elements_beside_the_probe_outline_get_a_richer_rule_with_the_same_linear_limit():
+    """Beside the probe's outline the solver integrates with eight points (exact for
+    cubics) instead of four; both integrate the small-strain stiffness exactly, so
+    the tangent at rest is still the linear model's stiffness."""
+    from math import factorial
+
+    from app.core.hyperelastic import EDGE_BARY, EDGE_W
+
+    # exact for every monomial of degree <= 3 on the unit tet: int x^a y^b z^c = a! b! c! / (a+b+c+3)!
+    x, y, z = EDGE_BARY[:, 1], EDGE_BARY[:, 2], EDGE_BARY[:, 3]
+    assert np.all(EDGE_W > 0)
+    for a in range(4):
+        for b in range(4 - a):
+            for c in range(4 - a - b):
+                exact = factorial(a) * factorial(b) * factorial(c) / factorial(a + b + c + 3)
+                assert np.sum(EDGE_W * x**a * y**b * z**c) / 6.0 == pytest.approx(exact, rel=1e-12)
+    mesh = cube_mesh(4, size=(10.0, 10.0, 8.0), probe_rect=(2.5, 7.5, 2.5, 7.5),
+                     labels=lambda c: (c[:, 2] > 4).astype(np.int32))
+    fe = build_model(mesh)
+    hm = HyperelasticModel(fe)
+    # the tets touching the outline's 16 top vertices, and one ring of neighbours
+    P = mesh.points_mm[mesh.tets].mean(axis=1)
+    assert 0 < len(hm.edge) < mesh.n_tets
+    assert np.all(P[hm.edge, 2] > 8.0 - 2 * 2.5)
+    E, nu = [10.0, 25.0], 0.45
+    mu, lam = hm.element_moduli(E, nu)
+    T0 = hm._upper_matrix(hm.tangent_upper(np.zeros(fe.space.n_dofs), mu, lam))
+    A, _, _, _ = fe.term_blocks(coefficients(E, nu))
+    import scipy.sparse as sp
+
+    assert abs(T0 - sp.triu(A)).max() <= 1e-12 * abs(A).max()
+    # and the four-point model (edge_rule=False) has the same tangent at rest
+    four = HyperelasticModel(fe, edge_rule=False)
+    assert len(four.edge) == 0
+    T4 = four._upper_matrix(four.tangent_upper(np.zeros(fe.space.n_dofs), mu, lam))
+    assert abs(T0 - T4).max() <= 1e-12 * abs(A).max()
