@@ -46,7 +46,7 @@ import scipy.sparse as sp
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import QUAD_BARY, QUAD_W, coefficients, lame, shape_gradients
 from app.core.forward import MN_TO_N, FEModel
-from app.core.solver import SymmetricFactor
+from app.core.solver import SymmetricFactor, single_threaded_blas
 
 
 # ---------------------------------------------------------------------------
@@ -400,6 +400,10 @@ class HyperelasticModel:
 
         ``progress(step, n_steps)`` after each step; ``cancel`` stops between iterations.
         """
+        with single_threaded_blas():  # numpy's spinning BLAS threads slowed PARDISO's back-substitutions
+            return self._solve(youngs_kPa, nu, depths_mm, progress, cancel)
+
+    def _solve(self, youngs_kPa, nu, depths_mm, progress, cancel) -> HyperelasticSolution:
         fe = self.fe
         theta = np.asarray(youngs_kPa, float)
         depths = np.asarray(depths_mm, float)

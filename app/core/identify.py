@@ -18,7 +18,6 @@ from typing import Callable
 
 import numpy as np
 from scipy.optimize import minimize
-from threadpoolctl import ThreadpoolController
 
 from app.core.errors import Cancelled, ElastoidError
 from app.core.forward import Boundary, FEModel, ReducedModel, build_model, region_terms, training_set
@@ -26,6 +25,7 @@ from app.core.images import default_roi, pixel_to_world
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 from app.core.similarity import NMI, SmoothNMI
 from app.core.warp import TPS, FastWarp, WarpGrid
+from app.core.solver import single_threaded_blas  # noqa: F401  (re-exported: bench, effects)
 
 PAPER_STARTS_KPA = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
 RESTARTS = 3  # Nelder-Mead restarts per start (each from where the last stopped)
@@ -44,19 +44,6 @@ DISPLACEMENT_NOISE_PX = 0.25  # stated noise model of the image term (speckle-tr
 JACKKNIFE_BLOCK_MM = 3.0
 JACKKNIFE_GROUPS = 16
 SANDWICH_STEP = 0.03
-_POOLS: ThreadpoolController | None = None
-
-
-def single_threaded_blas():
-    """Context capping numpy's BLAS (OpenBLAS) at one thread: in these small products
-    its idle threads only spin and steal the cores. MKL, which here serves only
-    PARDISO, keeps its threads (capping it too made the reduced-basis training's
-    back-substitutions 2x slower). The controller is built once: building it
-    scans the process."""
-    global _POOLS
-    if _POOLS is None:
-        _POOLS = ThreadpoolController().select(internal_api=["openblas", "blis"])
-    return _POOLS.limit(limits=1)
 
 
 @dataclass(frozen=True)
