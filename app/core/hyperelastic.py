@@ -27,6 +27,12 @@ travel from that equilibrium with that tangent, so inside a fit a solve costs a
 few iterations per travel and no factorization. The reaction on the probe is
 the probe's share of f_int.
 
+The energy is integrated with the linear model's 4-point rule, except in the
+tets beside the probe face's outline, where the deformation is largest: there
+an 8-point rule (exact for cubics) keeps elements from deforming in ways four
+points do not see (see :func:`edge_elements`). Both rules are exact for the
+small-strain stiffness, so the linear limit is the linear model's.
+
 Like the linear field, the hyperelastic field under displacement control
 depends only on the ratios of the moduli, and the force scales with their level.
 
