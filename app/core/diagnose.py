@@ -531,7 +531,8 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
     else:
         cp = EffectProblem.from_experiment(problem.exp, effects=effects, base=problem, frames=problem.frames,
                                            roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind,
-                                           inclusion=inclusion, progress=say, cancel=cancel)
+                                           inclusion=inclusion, progress=say, cancel=cancel,
+                                           near_kPa=problem.moduli(start))
     if "hyperelastic" in problem.effects and "hyperelastic" in effects and cp._hyper is None:
         cp.refresh_hyperelastic(start, cancel=cancel)
     lik = Likelihood(cp, tracked, noise)

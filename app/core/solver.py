@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -15,6 +17,24 @@ try:  # MKL is not available on every platform (e.g. Apple silicon)
 except Exception:  # pragma: no cover - depends on the platform
     pypardiso = None
     HAVE_PARDISO = False
+
+
+def _remember_mkl_path() -> None:
+    """Every new pypardiso solver looks for MKL's library again: find_library, and
+    when that fails (a pip-installed MKL) a recursive glob of the environment's
+    lib folders, 0.6 s per solver here (a diagnosis makes a dozen). The first
+    solver's find is kept in PYPARDISO_MKL_RT, pypardiso's own override."""
+    if not HAVE_PARDISO or os.environ.get("PYPARDISO_MKL_RT"):
+        return
+    try:
+        path = getattr(pypardiso.PyPardisoSolver().libmkl, "_name", None)
+    except Exception:  # pragma: no cover - MKL missing: pypardiso's own error comes later
+        return
+    if path and os.path.isfile(path):
+        os.environ["PYPARDISO_MKL_RT"] = path
+
+
+_remember_mkl_path()
 
 
 _POOLS = None

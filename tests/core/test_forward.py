@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from app.core.forward import Boundary, ReducedModel, build_model, region_terms, training_set
+from app.core.forward import Boundary, ReducedModel, build_model, local_training_set, region_terms, training_set
 from app.core.geometry import Region
 from app.core.mesh import MeshSettings, build_mesh
 
@@ -23,6 +23,29 @@ def test_reduced_model_matches_full_solves(model):
         assert np.linalg.norm(u_rb - u_full) / np.linalg.norm(u_full) < 1e-6
         assert rm.force_N_per_mm(E, a) == pytest.approx(F_full, rel=1e-7)
     assert rm.n_full_solves == 1  # one factorization; everything else back-substitutions
+
+
+def test_a_model_trained_near_an_optimum_is_smaller_and_still_exact_far_from_it(model):
+    """A diagnosis candidate trains its reduced model on ratios within a factor 3
+    of the optimum it starts from; an evaluation beyond that enriches the basis
+    (the residual is checked every time), so it stays exact everywhere."""
+    near = local_training_set([18.0, 63.0])
+    ratios = near[:, 1] / near[:, 0]
+    assert np.all(ratios >= 63.0 / 18.0 / 3.0 - 1e-9) and np.all(ratios <= 3.0 * 63.0 / 18.0 + 1e-9)
+    three = local_training_set([10.0, 20.0, 5.0])
+    assert np.all(np.abs(np.log(three[:, 1:] / three[:, :1]) - np.log([2.0, 0.5])) <= np.log(3.0) + 1e-9)
+    full = ReducedModel(model, region_terms(2, 0.49))
+    full.train(training_set(2))
+    local = ReducedModel(model, region_terms(2, 0.49))
+    local.train(near)
+    assert local.k < full.k
+    k0 = local.k
+    for E in ([18.0, 63.0], [20.0, 5.0], [1.0, 200.0]):  # the optimum, then two beyond the local range
+        u_full, F_full = model.solve(E)
+        a = local.coords(E)
+        assert np.linalg.norm(local.full_field(a) - u_full) / np.linalg.norm(u_full) < 1e-6
+        assert local.force_N_per_mm(E, a) == pytest.approx(F_full, rel=1e-7)
+    assert local.k > k0  # it grew where it had to
 
 
 def test_displacement_control_depends_only_on_moduli_ratios(model):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from app.core.fem import lame
-from app.core.forward import ReducedModel, training_set
+from app.core.forward import ReducedModel, local_training_set, training_set
 
 NU_TRAINING = (0.3, 0.4, 0.45, 0.48, 0.49, 0.495)
 
@@ -48,8 +48,9 @@ class LameReducedModel(ReducedModel):
     def force_N_per_mm(self, theta, a=None):
         return super().force_N_per_mm(self._expand(theta), a)
 
-    def train_default(self, progress=None):
-        E = training_set(self.n_regions, n=6)
+    def train_default(self, progress=None, near_kPa=None):
+        """Over the whole ratio range, or (``near_kPa``) within a factor 3 of those moduli's ratios."""
+        E = training_set(self.n_regions, n=6) if near_kPa is None else local_training_set(near_kPa, n=4)
         thetas = np.array([lame_theta(e, nu) for e in E for nu in NU_TRAINING])
         self.train(thetas, progress)
 

@@ -35,7 +35,7 @@ from app.core.effects.compressibility import LameReducedModel, lame_theta
 from app.core.effects.viscoelastic import prony_force
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import interpolation_matrix
-from app.core.forward import ReducedModel, build_model, region_terms, training_set
+from app.core.forward import ReducedModel, build_model, local_training_set, region_terms, training_set
 from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, nelder_mead, single_threaded_blas
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 
@@ -77,10 +77,13 @@ class EffectProblem(Problem):
                         nu: float = 0.49, force_weight: float = 1.0, bins: int = 32, similarity: str = "smooth",
                         base: Problem | None = None,
                         inclusion: dict | None = None, progress: Callable[[str], None] | None = None,
-                        cancel: threading.Event | None = None, **_ignored) -> "EffectProblem":
+                        cancel: threading.Event | None = None, near_kPa=None, **_ignored) -> "EffectProblem":
         """Mesh, assemble and train what the effects need. ``base``: a problem on the
         same mesh whose FE model and reduced model are reused when the effects
-        leave them unchanged (viscoelastic, hyperelastic)."""
+        leave them unchanged (viscoelastic, hyperelastic). ``near_kPa``: moduli the
+        fits will start from (a diagnosis candidate's refit); a new reduced model
+        is then trained on ratios within a factor 3 of theirs instead of the
+        whole range (it still enriches itself wherever a fit goes)."""
         say = progress or (lambda s: None)
         effects = check(effects)
         if frames is None:
@@ -111,12 +114,13 @@ class EffectProblem(Problem):
         else:
             say("training the reduced model")
             with single_threaded_blas():
+                near = None if near_kPa is None or len(near_kPa) != n else near_kPa
                 if free_nu:
                     rm = LameReducedModel(fe, n, nu)
-                    rm.train_default()
+                    rm.train_default(near_kPa=near)
                 else:
                     rm = ReducedModel(fe, region_terms(n, nu))
-                    rm.train(training_set(n))
+                    rm.train(training_set(n) if near is None else local_training_set(near))
             say(f"reduced model: {rm.V.shape[1]} basis vectors")
         return cls(exp, mesh, fe, rm, effects=effects, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
                    force_weight=force_weight, bins=bins, inclusion=inclusion, similarity=similarity)
