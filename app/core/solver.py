@@ -26,8 +26,9 @@ def _remember_mkl_path() -> None:
     solver's find is kept in PYPARDISO_MKL_RT, pypardiso's own override."""
     if not HAVE_PARDISO or os.environ.get("PYPARDISO_MKL_RT"):
         return
-    try:
-        path = getattr(pypardiso.PyPardisoSolver().libmkl, "_name", None)
+    try:  # the solver pypardiso made at import (it has searched already), else a new one
+        solver = getattr(getattr(pypardiso, "scipy_aliases", None), "pypardiso_solver", None)
+        path = getattr((solver or pypardiso.PyPardisoSolver()).libmkl, "_name", None)
     except Exception:  # pragma: no cover - MKL missing: pypardiso's own error comes later
         return
     if path and os.path.isfile(path):
