@@ -25,7 +25,8 @@ sys.path.insert(0, str(ROOT))
 
 from app.core.experiment import read_experiment  # noqa: E402
 from app.core.fem import lame  # noqa: E402
-from app.core.identify import PAPER_STARTS_KPA, Problem, identify, single_threaded_blas  # noqa: E402
+from app.core.identify import PAPER_STARTS_KPA, Problem, identify  # noqa: E402
+from app.core.solver import single_threaded_blas  # noqa: E402
 from app.core.mesh import MeshSettings, quality  # noqa: E402
 from app.core.similarity import NMI  # noqa: E402
 from app.core.solver import backend_name  # noqa: E402

@@ -330,17 +330,7 @@ def local_training_set(moduli_kPa, factor: float = 3.0, n: int = 12, seed: int =
     (a diagnosis candidate). Evaluations beyond it still enrich the basis (the
     residual is checked at every one), so this only saves training time."""
     E = np.asarray(moduli_kPa, float)
-    if len(E) == 1:
-        return np.ones((1, 1))
-    centre = np.log(E[1:] / E[0])
-    lo, hi = -np.log(factor), np.log(factor)
-    if len(E) == 2:
-        logs = centre + np.linspace(lo, hi, n)[:, None]
-    else:
-        rng = np.random.default_rng(seed)
-        corners = np.array(np.meshgrid(*[[lo, 0.0, hi]] * (len(E) - 1))).reshape(len(E) - 1, -1).T
-        logs = centre + np.vstack([corners, rng.uniform(lo, hi, size=(n, len(E) - 1))])
-    return np.column_stack([np.ones(len(logs)), np.exp(logs)])
+    return training_set(len(E), (1.0 / factor, factor), n, seed) * np.concatenate([[1.0], E[1:] / E[0]])
 
 
 def training_set(n_regions: int, ratio_range=(1 / 30, 30), n: int = 24, seed: int = 0) -> np.ndarray:

@@ -213,12 +213,12 @@ class _Group:
     """Elements that share a quadrature rule: their shape-function gradients in the
     reference configuration (m, q, 10, 3) and quadrature weights times volume (m, q)."""
 
-    def __init__(self, idx, bary, weights, space):
+    def __init__(self, idx, bary, weights, space, dofs):
         self.idx = np.asarray(idx, np.int64)
         self.dN = np.ascontiguousarray(shape_gradients(bary, space.grad_bary[self.idx], space.degree))
         self.wV = space.volumes_mm3[self.idx, None] * weights[None, :]
-        e = space.elems[self.idx]
-        self.dofs = (3 * e[:, :, None] + np.arange(3)).reshape(len(e), -1)
+        self.dofs = dofs[self.idx]  # (m, 30)
+        self.pos = None  # positions of its element entries in the tangent's upper triangle (set by the model)
 
     def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
         """F (m, q, 3, 3) at the quadrature points."""
@@ -230,6 +230,11 @@ class _Group:
         return F
 
     def tangents(self, u, mu_e, lam_e) -> np.ndarray:
+        """Element tangent stiffness (m, 10, 3, 10, 3) in mN/mm.
+
+        With H = F^-T and h_a = H grad N_a:
+        K[a i, b k] = int mu delta_ik grad N_a . grad N_b + (mu - lam ln J) h_ak h_bi + lam h_ai h_bk.
+        """
         F = self.deformation_gradient(u)
         J, cof = _det_cof(F)
         if np.any(J <= 0):
@@ -297,7 +302,7 @@ class HyperelasticModel:
         # (see edge_elements); both rules are exact for the small-strain stiffness
         self.edge = edge_elements(fe.space.mesh) if edge_rule else np.zeros(0, np.int64)
         rest = np.setdiff1d(np.arange(m), self.edge)
-        self._groups = [_Group(idx, bary, w, space) for idx, bary, w in
+        self._groups = [_Group(idx, bary, w, space, self.dofs) for idx, bary, w in
                         ((rest, QUAD_BARY, QUAD_W), (self.edge, EDGE_BARY, EDGE_W)) if len(idx)]
         self._setup_pattern()
         self._cache: dict[float, _Preconditioner] = {}
@@ -330,7 +335,8 @@ class HyperelasticModel:
             keys = d[:, a, None].astype(np.int64) * n + d
             p = np.searchsorted(csr_keys, keys)
             pos[:, a, :] = full_to_ffu[p]
-        self._pos = pos.ravel()
+        for g in self._groups:
+            g.pos = pos[g.idx].ravel()
         self._n_ffu = n_ffu
         self._diag = self._ffu_indptr[:-1]  # each row's first upper entry is its diagonal
         assert np.array_equal(self._ffu_indices[self._diag], np.arange(len(fe.free)))
@@ -361,21 +367,13 @@ class HyperelasticModel:
         return sum(float(np.sum(g.wV * neo_hookean_energy(g.deformation_gradient(u), mu_e[g.idx, None],
                                                           lam_e[g.idx, None]))) for g in self._groups)
 
-    def element_tangents(self, u: np.ndarray, mu_e: np.ndarray, lam_e: np.ndarray) -> np.ndarray:
-        """Element tangent stiffness (m, 10, 3, 10, 3) in mN/mm.
-
-        With H = F^-T and h_a = H grad N_a:
-        K[a i, b k] = int mu delta_ik grad N_a . grad N_b + (mu - lam ln J) h_ak h_bi + lam h_ai h_bk.
-        """
-        K = np.empty((len(self.elems), 10, 3, 10, 3))
-        for g in self._groups:
-            K[g.idx] = g.tangents(u, mu_e[g.idx], lam_e[g.idx])
-        return K
-
     def tangent_upper(self, u, mu_e, lam_e) -> np.ndarray:
         """Values of the upper triangle of the free-free tangent (CSR order)."""
-        K = self.element_tangents(u, mu_e, lam_e)
-        return np.bincount(self._pos, weights=K.ravel(), minlength=self._n_ffu + 1)[: self._n_ffu]
+        out = np.zeros(self._n_ffu + 1)
+        for g in self._groups:  # each group's element matrices straight into the sum
+            K = g.tangents(u, mu_e[g.idx], lam_e[g.idx])
+            out += np.bincount(g.pos, weights=K.ravel(), minlength=self._n_ffu + 1)
+        return out[: self._n_ffu]
 
     def _upper_matrix(self, data) -> sp.csr_matrix:
         n = len(self.fe.free)

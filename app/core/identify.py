@@ -25,7 +25,7 @@ from app.core.images import default_roi, pixel_to_world
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 from app.core.similarity import NMI, SmoothNMI
 from app.core.warp import TPS, FastWarp, WarpGrid
-from app.core.solver import single_threaded_blas  # noqa: F401  (re-exported: bench, effects)
+from app.core.solver import single_threaded_blas
 
 PAPER_STARTS_KPA = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
 RESTARTS = 3  # Nelder-Mead restarts per start (each from where the last stopped)

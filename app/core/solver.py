@@ -45,9 +45,9 @@ def single_threaded_blas():
     """Context capping numpy's BLAS (OpenBLAS) at one thread: in these small products
     its idle threads only spin and steal the cores. MKL, which here serves only
     PARDISO, keeps its threads (capping it too made the reduced-basis training's
-    back-substitutions 2x slower; with OpenBLAS capped, a warm hyperelastic solve
-    took 1.1-1.7 s instead of 1.8-2.5 s, its back-substitutions 49 instead of
-    57 ms). The controller is built once: building it scans the process."""
+    back-substitutions 2x slower; with OpenBLAS capped, warm hyperelastic solves
+    on the demo took 1.35 and 1.65 s against 1.69 and 1.70 s, medians of 6 in
+    two runs each). The controller is built once: building it scans the process."""
     global _POOLS
     if _POOLS is None:
         from threadpoolctl import ThreadpoolController

@@ -36,8 +36,9 @@ from app.core.effects.viscoelastic import prony_force
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import interpolation_matrix
 from app.core.forward import ReducedModel, build_model, local_training_set, region_terms, training_set
-from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, nelder_mead, single_threaded_blas
+from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, nelder_mead
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
+from app.core.solver import single_threaded_blas
 
 
 @dataclass
