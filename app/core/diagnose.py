@@ -598,6 +598,7 @@ def _evidence(eff, problem, base: Candidate, cand: Candidate, tracked, lik0, lik
 
         return evidence(cand.parameters["nu"], P.nu, before, after)
     if eff == "inclusion":
+        from app.core.effects import misfit_change
         from app.core.effects.inclusion import InclusionGuess, evidence
 
         inc = cand.inclusion
@@ -607,7 +608,7 @@ def _evidence(eff, problem, base: Candidate, cand: Candidate, tracked, lik0, lik
 
         host = P.moduli_names[int(paint_labels(np.array([inc["center_mm"]]), P.exp.specimen.regions)[0])]
         ratio = cand.parameters[f"E_{inc['name']}_kPa"] / cand.parameters[host]
-        return evidence(g, depth, ratio) + f"; the displacement misfit falls from {before:.2f} to {after:.2f} px"
+        return evidence(g, depth, ratio) + f"; the displacement misfit {misfit_change(before, after)}"
     return ""
 
 

@@ -97,3 +97,11 @@ def check(effects) -> tuple[str, ...]:
         if e not in EFFECT_IDS:
             raise ElastoidError(f"unknown effect {e!r}; the ids are {', '.join(EFFECT_IDS)}")
     return tuple(e for e in EFFECT_IDS if e in effects)
+
+
+def misfit_change(before_px: float, after_px: float) -> str:
+    """"falls from 0.89 to 0.83 px", "rises from 0.89 to 1.59 px" or "stays at 0.89 px"."""
+    b, a = f"{before_px:.2f}", f"{after_px:.2f}"
+    if a == b:
+        return f"stays at {b} px"
+    return f"{'falls' if after_px < before_px else 'rises'} from {b} to {a} px"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.effects import misfit_change
 from app.core.fem import lame
 from app.core.forward import ReducedModel, local_training_set, training_set
 
@@ -60,5 +61,5 @@ def evidence(nu_fit: float, nu_baseline: float, rms_before_px: float, rms_after_
     digits = 2 if round(nu_fit, 2) != round(nu_baseline, 2) else 3  # 0.487 vs 0.49 must not read "0.49 vs 0.49"
     fit, base = f"{nu_fit:.{digits}f}", f"{nu_baseline:.{digits}f}"
     return (f"the tissue changes volume under the probe as a Poisson's ratio of {fit} says, where the model "
-            f"keeps it at {base} (nearly incompressible); the displacement misfit falls from "
-            f"{rms_before_px:.2f} to {rms_after_px:.2f} px")
+            f"keeps it at {base} (nearly incompressible); the displacement misfit "
+            f"{misfit_change(rms_before_px, rms_after_px)}")
