@@ -10,3 +10,18 @@ def test_the_misfit_change_reads_the_right_way():
     assert misfit_change(0.89, 1.59) == "rises from 0.89 to 1.59 px"
     assert misfit_change(0.891, 0.889) == "stays at 0.89 px"
     assert evidence(0.40, 0.49, 0.9, 1.2).endswith("the displacement misfit rises from 0.90 to 1.20 px")
+
+
+def test_the_inclusion_explains_the_misfit_only_when_the_misfit_falls():
+    from app.core.effects.inclusion import InclusionGuess
+    from app.core.effects.inclusion import evidence as inclusion_evidence
+
+    g = InclusionGuess("I", (26.0, 20.0, 14.0), 4.0, True, 0.0)
+    fits = inclusion_evidence(g, 16.0, 3.2, 0.32, 0.05)
+    assert "3.2 times stiffer it explains the misfit" in fits
+    assert fits.endswith("the displacement misfit falls from 0.32 to 0.05 px")
+    # seen on the demo: the candidate fitted worse, yet the sentence said it explained the misfit
+    worse = inclusion_evidence(g, 14.0, 1.3, 0.89, 1.59)
+    assert "does not explain the misfit" in worse and "it explains" not in worse
+    assert worse.endswith("rises from 0.89 to 1.59 px")
+    assert "does not explain" in inclusion_evidence(g, 14.0, 1.3, 0.891, 0.889)  # unchanged to the digit shown

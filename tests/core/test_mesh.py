@@ -54,7 +54,9 @@ def test_probe_face_is_resolved_by_many_nodes(mesh):
     c = mesh.points_mm[mesh.tets].mean(axis=1)
     near = (c[:, 2] > SIZE[2] - 4) & (np.abs(c[:, 0] - 30) < 15) & (np.abs(c[:, 1] - 25) < 4)
     far = c[:, 2] < 10
-    assert np.median(length[near]) < 0.6 * np.median(length[far])
+    # fTetWild is not deterministic: three fresh meshes gave 0.53, 0.55 and 0.58, and a 0.6 bound
+    # failed now and then; without the refinement the ratio is about 1
+    assert np.median(length[near]) < 0.7 * np.median(length[far])
 
 
 def test_the_bonded_face_is_the_probe_face(mesh):
@@ -158,3 +160,21 @@ def test_the_mesher_dies_with_its_parent(tmp_path):
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+def test_the_located_inclusions_looser_envelope_keeps_the_geometry():
+    """A diagnosis meshes its located sphere with fTetWild's envelope at
+    LOCATED_EPSILON (faster): the sphere keeps its volume, the box its faces and
+    the probe its whole face."""
+    from app.core.diagnose import LOCATED_EPSILON
+
+    regions = (Region("B", "background"), Region("I", "sphere", center_mm=(30.0, 25.0, 24.0), radius_mm=8.0))
+    m = build_mesh(SIZE, PROBE, regions, MeshSettings(edge_mm=6.0, probe_edge_mm=2.0, epsilon=LOCATED_EPSILON),
+                   use_cache=False)
+    q = quality(m, regions)
+    geo = q.region_geometric_volume_mm3["I"]
+    assert abs(q.region_volume_mm3["I"] - geo) / geo < 0.06, q.lines()
+    assert abs(m.tet_volumes_mm3().sum() - np.prod(SIZE)) / np.prod(SIZE) < 1e-3
+    assert q.min_dihedral_deg > 3.0
+    x0, x1, y0, y1 = PROBE
+    assert probe_face_area_mm2(m) == pytest.approx((x1 - x0) * (y1 - y0), rel=1e-6)

@@ -52,12 +52,19 @@ def new_region_name(existing) -> str:
     return f"I{len(existing) + 1}"
 
 
-def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float) -> str:
-    kind = "stiffer" if e_ratio >= 1 else "softer"
-    return (f"a region the experiment does not describe, about {2 * guess.radius_mm:.0f} mm across at "
-            f"{depth_mm:.0f} mm depth, deforms {'less' if e_ratio >= 1 else 'more'} than its surroundings: "
-            f"as an inclusion {e_ratio:.1f} times {kind if e_ratio >= 1 else 'as stiff'} "
-            f"it explains the misfit")
+def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: float, after_px: float) -> str:
+    """The inclusion's sentence: where the scan put it, what it does, and whether
+    it explains the misfit (only when the displacement misfit falls with it)."""
+    from app.core.effects import misfit_change
+
+    where = f"a region the experiment does not describe, about {2 * guess.radius_mm:.0f} mm across at " \
+            f"{depth_mm:.0f} mm depth"
+    stiffness = f"{e_ratio:.1f} times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
+    change = f"the displacement misfit {misfit_change(before_px, after_px)}"
+    if after_px < before_px and f"{after_px:.2f}" != f"{before_px:.2f}":
+        return (f"{where} deforms {'less' if e_ratio >= 1 else 'more'} than its surroundings: as an inclusion "
+                f"{stiffness} it explains the misfit; {change}")
+    return f"{where} was tried as an inclusion ({stiffness} at best) and does not explain the misfit; {change}"
 
 
 def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=None,
