@@ -10,9 +10,10 @@ meshing time over the repeats, and the mesh of the last repeat: nodes,
 tetrahedra, smallest dihedral angle and the sphere's volume against its
 geometric volume.
 
-Measured 2026-11-25 (one run each, by a scratch version of this script): 48.2 s
-with 5e-4 (3,754 nodes, smallest dihedral 13.6 degrees) and 18.5 s with 1e-3
-(3,351 nodes, 15.3 degrees).
+Measured 2026-11-25, `--repeats 1` (times of the whole build_mesh, outline
+conforming included): 35.7 s with 5e-4 (3,782 nodes, smallest dihedral 8.3
+degrees, sphere volume -0.09%) and 15.1 s with 1e-3 (3,465 nodes, 11.8 degrees,
+-0.35%). An earlier scratch run that timed fTetWild alone: 48.2 s and 18.5 s.
 """
 
 from __future__ import annotations

@@ -387,9 +387,9 @@ def located_inclusion_settings(exp) -> MeshSettings:
     """Automatic mesh settings for the experiment with a located inclusion, with a
     looser fTetWild envelope (LOCATED_EPSILON: 0.16 mm on the demo). The located
     sphere's centre and radius come from a scan on a grid of millimetres, so the
-    envelope changes nothing that is known, and fTetWild meshed the demo with its
-    sphere in 18.5 s instead of 48 s (the diagnosis meshes it in the background,
-    on the core its other candidates need)."""
+    envelope changes nothing that is known, and the demo with its sphere meshed in
+    15.1 s instead of 35.7 s (bench/inclusion_mesh.py; the diagnosis meshes it in
+    the background, on the core its other candidates need)."""
     s = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
     return replace(s, epsilon=max(s.epsilon, LOCATED_EPSILON))
 
