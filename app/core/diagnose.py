@@ -599,7 +599,7 @@ def _evidence(eff, problem, base: Candidate, cand: Candidate, tracked, lik0, lik
     if eff == "hyperelastic":
         from app.core.effects.hyperelastic import evidence
 
-        return evidence(P.log_d, P.log_F, F0)
+        return evidence(P.log_d, P.log_F, F0, cand.problem.model_force_N(cand.parameters))
     before, after = base.misfit["displacement_rms_px"], cand.misfit["displacement_rms_px"]
     if eff in ("sliding-bottom", "probe-slip"):
         from app.core.effects.boundary import evidence

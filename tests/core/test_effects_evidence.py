@@ -25,3 +25,20 @@ def test_the_inclusion_explains_the_misfit_only_when_the_misfit_falls():
     assert "does not explain the misfit" in worse and "it explains" not in worse
     assert worse.endswith("rises from 0.89 to 1.59 px")
     assert "does not explain" in inclusion_evidence(g, 14.0, 1.3, 0.891, 0.889)  # unchanged to the digit shown
+
+
+def test_the_hyperelastic_evidence_says_what_large_deformation_would_change():
+    import numpy as np
+
+    from app.core.effects.hyperelastic import evidence as hyper_evidence
+
+    d = np.linspace(0.0, 14.8, 200)
+    linear = 0.6 * d
+    # a neo-Hookean force ratio rising to 1.066 at the deepest travel (the demo's)
+    neo = linear * (1 + 0.066 * (d / d[-1]) ** 2)
+    s = hyper_evidence(d, linear, linear, neo)
+    assert s.startswith("from the first to the second half of the indentation the measured force grows in "
+                        "proportion to the travel (within 1%); the model's force grows in proportion"), s
+    # slopes over 10-50% and 50-100% of the travel: (1 + 1.75 a) / (1 + 0.31 a) - 1 = 9% for a = 0.066
+    assert s.endswith("with large deformation (neo-Hookean) it stiffens by 9%"), s
+    assert "neo-Hookean" not in hyper_evidence(d, neo, linear)  # without a candidate: the two forces only

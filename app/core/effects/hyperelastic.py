@@ -42,13 +42,17 @@ def stiffening(d_mm: np.ndarray, force_N: np.ndarray) -> float:
     return float(k2 / k1 - 1.0)
 
 
-def evidence(d_mm, measured_N, model_N) -> str:
-    s_meas = stiffening(d_mm, measured_N)
-    s_mod = stiffening(d_mm, model_N)
+def evidence(d_mm, measured_N, model_N, candidate_N=None) -> str:
+    """The measured force's stiffening against the current model's and, with
+    ``candidate_N``, against the fitted neo-Hookean model's (which says why the
+    effect is or is not needed)."""
     def says(s):
         if abs(s) < 0.01:
             return "grows in proportion to the travel (within 1%)"
         return f"{'stiffens' if s >= 0 else 'softens'} by {100 * abs(s):.0f}%"
 
-    return (f"from the first to the second half of the indentation the measured force {says(s_meas)}; "
-            f"the model's force {says(s_mod)}")
+    out = (f"from the first to the second half of the indentation the measured force "
+           f"{says(stiffening(d_mm, measured_N))}; the model's force {says(stiffening(d_mm, model_N))}")
+    if candidate_N is not None:
+        out += f"; with large deformation (neo-Hookean) it {says(stiffening(d_mm, candidate_N))}"
+    return out

@@ -62,7 +62,7 @@ def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: 
     stiffness = f"{e_ratio:.1f} times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
     change = f"the displacement misfit {misfit_change(before_px, after_px)}"
     if after_px < before_px and f"{after_px:.2f}" != f"{before_px:.2f}":
-        return (f"{where} deforms {'less' if e_ratio >= 1 else 'more'} than its surroundings: as an inclusion "
+        return (f"{where}, deforms {'less' if e_ratio >= 1 else 'more'} than its surroundings: as an inclusion "
                 f"{stiffness} it explains the misfit; {change}")
     return f"{where} was tried as an inclusion ({stiffness} at best) and does not explain the misfit; {change}"
 
