@@ -246,3 +246,27 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     # meshed along its outline the same case fell 1.43x: the unbonded strip along the probe's edges,
     # different in the truth's mesh and the model's, left an error no inclusion could remove.
     assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
+
+
+def test_a_located_inclusion_is_meshed_with_the_looser_envelope(monkeypatch):
+    """current_model() with an inclusion and automatic settings meshes with
+    LOCATED_EPSILON (the candidate and the added version alike); explicit
+    settings are kept as given."""
+    from app.core import diagnose as dg
+    from app.core.mesh import auto_settings
+
+    seen = []
+    monkeypatch.setattr(dg.EffectProblem, "from_experiment",
+                        classmethod(lambda cls, exp, **kw: seen.append((exp, kw["mesh_settings"]))))
+    exp = read_experiment(synthetic.diagnose_case("inclusion"))
+    inc = {"name": "I", "center_mm": [26.0, 20.0, 14.0], "radius_mm": 4.5}
+    dg.current_model(exp, inclusion=inc)
+    with_sphere, settings = seen[-1]
+    assert with_sphere.specimen.region_names[-1] == "I"
+    auto = auto_settings(with_sphere.specimen.size_mm, with_sphere.probe.face_rect_mm(), with_sphere.specimen.regions)
+    assert settings.epsilon == dg.LOCATED_EPSILON > auto.epsilon
+    assert (settings.edge_mm, settings.probe_edge_mm) == (auto.edge_mm, auto.probe_edge_mm)
+    dg.current_model(exp, inclusion=inc, mesh_settings=ID_MESH)
+    assert seen[-1][1] == ID_MESH
+    dg.current_model(exp)  # no inclusion: the experiment's own automatic settings
+    assert seen[-1][1] is None
