@@ -114,9 +114,10 @@ def bench_diagnose(repeats: int, candidates) -> list[tuple[str, float, str]]:
         verdicts.append(d.verdict)
         for c in d.candidates:
             per.setdefault(c.effect, []).append(c.seconds)
-    rows = [("full diagnosis of the demo (median)", statistics.median(times),
-             f"verdict {', '.join(verdicts)}; {statistics.median(cpus):.0f} CPU-seconds (the mesher's included): "
-             f"{statistics.median(cpus) / statistics.median(times):.2f} of the {os.cpu_count()} cores busy")]
+    wall, cpu = statistics.median(times), statistics.median(cpus)
+    rows = [("full diagnosis of the demo (median)", wall,
+             f"verdict {', '.join(verdicts)}; {cpu:.0f} CPU-seconds (the mesher's included): "
+             f"{cpu / wall:.2f} of the {os.cpu_count()} cores busy")]
     for e, ts in per.items():
         rows.append((f"  candidate {e}", statistics.median(ts),
                      "its scan, mesh and reduced model are built in the background while the others run"

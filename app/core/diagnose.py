@@ -391,7 +391,7 @@ def located_inclusion_settings(exp) -> MeshSettings:
     15.1 s instead of 35.7 s (bench/inclusion_mesh.py; the diagnosis meshes it in
     the background, on the core its other candidates need)."""
     s = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
-    return replace(s, epsilon=max(s.epsilon, LOCATED_EPSILON))
+    return replace(s, epsilon=LOCATED_EPSILON)
 
 
 def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=None, progress=None, cancel=None,

@@ -60,8 +60,9 @@ def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: 
     where = f"a region the experiment does not describe, about {2 * guess.radius_mm:.0f} mm across at " \
             f"{depth_mm:.0f} mm depth"
     stiffness = f"{e_ratio:.1f} times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
-    change = f"the displacement misfit {misfit_change(before_px, after_px)}"
-    if after_px < before_px and f"{after_px:.2f}" != f"{before_px:.2f}":
+    moved = misfit_change(before_px, after_px)
+    change = f"the displacement misfit {moved}"
+    if moved.startswith("falls"):  # as the sentence reads it: lower to the digits shown
         return (f"{where}, deforms {'less' if e_ratio >= 1 else 'more'} than its surroundings: as an inclusion "
                 f"{stiffness} it explains the misfit; {change}")
     return f"{where} was tried as an inclusion ({stiffness} at best) and does not explain the misfit; {change}"
