@@ -19,12 +19,14 @@ def test_the_inclusion_explains_the_misfit_only_when_the_misfit_falls():
     g = InclusionGuess("I", (26.0, 20.0, 14.0), 4.0, True, 0.0)
     fits = inclusion_evidence(g, 16.0, 3.2, 0.32, 0.05)
     assert "3.2 times stiffer it explains the misfit" in fits
-    assert fits.endswith("the displacement misfit falls from 0.32 to 0.05 px")
+    assert fits.endswith("on the same mesh the displacement misfit falls from 0.32 to 0.05 px")
     # seen on the demo: the candidate fitted worse, yet the sentence said it explained the misfit
     worse = inclusion_evidence(g, 14.0, 1.3, 0.89, 1.59)
     assert "does not explain the misfit" in worse and "it explains" not in worse
     assert worse.endswith("rises from 0.89 to 1.59 px")
     assert "does not explain" in inclusion_evidence(g, 14.0, 1.3, 0.891, 0.889)  # unchanged to the digit shown
+    # seen on a phantom without an inclusion: 0.46 -> 0.45 px is little
+    assert "0.7 times as stiff it explains little of the misfit" in inclusion_evidence(g, 4.0, 0.7, 0.463, 0.453)
 
 
 def test_the_hyperelastic_evidence_says_what_large_deformation_would_change():

@@ -54,17 +54,20 @@ def new_region_name(existing) -> str:
 
 def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: float, after_px: float) -> str:
     """The inclusion's sentence: where the scan put it, what it does, and whether
-    it explains the misfit (only when the displacement misfit falls with it)."""
+    it explains the misfit (only when the displacement misfit falls with it).
+    ``before_px``: the current model's misfit on the inclusion's mesh (what the
+    diagnosis compares the inclusion with)."""
     from app.core.effects import misfit_change
 
     where = f"a region the experiment does not describe, about {2 * guess.radius_mm:.0f} mm across at " \
             f"{depth_mm:.0f} mm depth"
     stiffness = f"{e_ratio:.1f} times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
     moved = misfit_change(before_px, after_px)
-    change = f"the displacement misfit {moved}"
+    change = f"on the same mesh the displacement misfit {moved}"
     if moved.startswith("falls"):  # as the sentence reads it: lower to the digits shown
+        how = "it explains the misfit" if after_px <= 0.9 * before_px else "it explains little of the misfit"
         return (f"{where}, deforms {'less' if e_ratio >= 1 else 'more'} than its surroundings: as an inclusion "
-                f"{stiffness} it explains the misfit; {change}")
+                f"{stiffness} {how}; {change}")
     return f"{where} was tried as an inclusion ({stiffness} at best) and does not explain the misfit; {change}"
 
 
