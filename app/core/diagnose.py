@@ -416,14 +416,15 @@ def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=N
                                          inclusion=inclusion, progress=progress, cancel=cancel, **kw)
 
 
-def same_mesh_model(problem: EffectProblem, cp: EffectProblem, cancel=None) -> EffectProblem:
+def same_mesh_model(problem: EffectProblem, cp: EffectProblem, near_kPa=None, cancel=None) -> EffectProblem:
     """The current model ``problem`` on the inclusion candidate's mesh (``cp``'s):
     the same tets, with the located sphere's given back to the regions they lie
     in. The inclusion candidate is scored against it, so that what the new mesh
     alone changes is not credited to the inclusion: a fresh mesh moved the
     current model's chi2 by -73 and +112 on two phantoms without any hidden
     effect, three times the inclusion's penalty of 4 ln N (26.5), and the
-    inclusion was the verdict on one of them."""
+    inclusion was the verdict on one of them. ``near_kPa``: the moduli its fit
+    will start from (its reduced model is trained near them)."""
     m = cp.mesh
     n = len(problem.mesh.region_names)
     labels = m.labels.copy()
@@ -432,7 +433,7 @@ def same_mesh_model(problem: EffectProblem, cp: EffectProblem, cancel=None) -> E
     mesh = replace(m, labels=labels, region_names=problem.mesh.region_names)
     return EffectProblem.from_experiment(problem.exp, effects=problem.effects, mesh=mesh, frames=problem.frames,
                                          roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind,
-                                         inclusion=problem.inclusion, cancel=cancel)
+                                         inclusion=problem.inclusion, cancel=cancel, near_kPa=near_kPa)
 
 
 class _InclusionPrep:
@@ -467,7 +468,7 @@ class _InclusionPrep:
             try:
                 self.problem = current_model(problem.exp, effects, mesh_settings=mesh_settings,
                                              inclusion=self.inclusion, cancel=cancel, nu=problem.nu)
-                self.reference = same_mesh_model(problem, self.problem, cancel)
+                self.reference = same_mesh_model(problem, self.problem, problem.moduli(base.parameters), cancel)
             except BaseException as exc:  # handed to the thread that waits for the model
                 self.error = exc
 

@@ -116,6 +116,38 @@ def test_a_new_mesh_alone_is_not_credited_to_an_inclusion(tmp_path_factory):
     assert "reference_misfit" in d.to_json_dict()["candidates"][0]
 
 
+def test_the_inclusions_reference_is_the_current_model_on_the_inclusions_mesh(monkeypatch):
+    """same_mesh_model(): the inclusion candidate's own tets and points, its sphere's
+    tets given back to the described regions they lie in (here both B and A: the
+    located sphere overlaps A), every other tet's label kept."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from app.core import diagnose as dg
+    from app.core.geometry import Region, paint_labels
+    from app.core.mesh import specimen_mesh
+
+    exp = read_experiment(synthetic.diagnose_case("inclusion"))
+    located = Region("I", "sphere", center_mm=(24.7, 20.0, 13.8), radius_mm=4.5)  # where the scan puts it
+    mesh = specimen_mesh(replace(exp, specimen=exp.specimen.with_region(located)), ID_MESH)  # committed
+    assert mesh.region_names == ("B", "A", "I")
+    seen = {}
+    monkeypatch.setattr(dg.EffectProblem, "from_experiment",
+                        classmethod(lambda cls, e, **kw: seen.update(exp=e, **kw)))
+    current = SimpleNamespace(exp=exp, mesh=SimpleNamespace(region_names=("B", "A")), effects=(), frames=(0, 1, 2),
+                              roi=None, nu=0.49, cost_kind="joint", inclusion=None)
+    dg.same_mesh_model(current, SimpleNamespace(mesh=mesh), near_kPa=[15.0, 45.0])
+    m = seen["mesh"]
+    assert seen["exp"] is exp and seen["near_kPa"] == [15.0, 45.0]
+    assert m.region_names == ("B", "A") and m.points_mm is mesh.points_mm and m.tets is mesh.tets
+    sphere = mesh.labels == 2
+    assert np.array_equal(m.labels[~sphere], mesh.labels[~sphere])
+    centroids = mesh.points_mm[mesh.tets[sphere]].mean(axis=1)
+    assert np.array_equal(m.labels[sphere], paint_labels(centroids, exp.specimen.regions))
+    assert set(np.unique(m.labels[sphere])) == {0, 1}
+    assert mesh.labels.max() == 2  # the candidate's own mesh is left as it was
+
+
 def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     exp, _ = visco
     mc = ModelCheck(exp, mesh_settings=ID_MESH)
