@@ -174,11 +174,11 @@ def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_
     cannot follow it. The diagnosis names hyperelastic; with it the moduli come
     right and the error beyond the noise falls at least 3x.
 
-    Measured on the committed meshes (2026-11-25, probe face meshed along its
-    outline): named first, pattern match 94%, the force stiffens 13%; moduli
-    -2.1% and -9.2% (the baseline's E_A was +51%); error beyond the noise falls
-    33x (force) and 4.3x (displacement). Before the outline was meshed: 3.4x and
-    3.3x, moduli -1.0% and -8.0%."""
+    Measured on the committed meshes (2026-11-26, truth written again with the
+    8-point rule beside the probe's outline): named first, pattern match 94%, the
+    force stiffens 14%; moduli -2.0% and -9.0% (the baseline's E_A was +54%);
+    the force error beyond the noise falls to the noise, the displacement's 4.1x.
+    With the earlier 4-point truth: 33x and 4.3x, moduli -2.1% and -9.2%."""
     exp = _make(tmp_path_factory, "hyper")  # neo-Hookean truth pressed 7.5 mm (seed 1)
     d = diagnose(exp, candidates=("hyperelastic", "viscoelastic", "compressibility"), mesh_settings=ID_MESH)
     assert d.verdict == "hyperelastic", d.lines()
