@@ -70,6 +70,7 @@ class IdentificationPanel(Panel):
         self.job: IdentificationJob | None = None
         self._updating = False
         self._t_start = 0.0
+        self._ended = True  # the last run has delivered its outcome (or failed, or was cancelled)
         self._overlay_seen = 0
         self._reset_traces()
         self._build()
@@ -317,7 +318,7 @@ class IdentificationPanel(Panel):
 
     def _update_progress(self) -> None:
         job = self.job
-        if job is None:
+        if job is None or self._ended:  # the end's own text ("done", "failed", ...) stays
             return
         s = job.settings
         n_starts = max(1, len(s.starts_kPa))
@@ -576,6 +577,7 @@ class IdentificationPanel(Panel):
         self._set_running(True)
         self.session.set_locked("an identification is running")
         self._t_start = time.monotonic()
+        self._ended = False
         self.progress.setValue(0)
         self.progress.setFormat("preparing the model")
         self.busy.emit("Identification: preparing the model", 0, 0)
@@ -604,7 +606,11 @@ class IdentificationPanel(Panel):
 
     def _task_done(self, payload) -> None:
         result, lines = payload
+        # no more timer draws: one landing between this and ``finished`` would put the
+        # running progress text back over "done"
+        self.timer.stop()
         self._drain()
+        self._ended = True
         s = self.session
         job = self.job
         if job is not None and s.specimen != job.experiment.specimen:
@@ -635,12 +641,16 @@ class IdentificationPanel(Panel):
                  result.outcome.seconds)
 
     def _task_failed(self, exc, details) -> None:
+        self.timer.stop()
+        self._ended = True
         self.state.setText(f"Failed: {exc}")
         self.progress.setFormat("failed")
         self.error.emit(exc, details)
 
     def _task_cancelled(self) -> None:
+        self.timer.stop()
         self._drain()
+        self._ended = True
         self.state.setText(f"Cancelled after {self._n_total} evaluations.")
         self.progress.setFormat("cancelled")
         self.status.emit("identification cancelled")
