@@ -79,6 +79,22 @@ DIAGNOSE_CASES = {
     "inclusion": (13, dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),),
                            moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})),
 }
+# A second geometry: a soft, flat, off-centre ellipsoid (9 kPa in 24 kPa tissue) in a
+# 44 x 40 x 32 mm block, with its own seeds (the "e-" cases)
+DIAGNOSE_ELLIPSOID = dict(size_mm=(44.0, 40.0, 32.0),
+                          regions=(Region("B", "background"),
+                                   Region("A", "ellipsoid", center_mm=(24.0, 20.0, 19.0), radii_mm=(9.0, 7.0, 5.0))),
+                          moduli_kPa={"B": 24.0, "A": 9.0})
+DIAGNOSE_CASES.update({
+    "e-visco": (21, dict(DIAGNOSE_ELLIPSOID, effects=("viscoelastic",), g1=0.35, tau1_s=2.0, hold_s=6.0)),
+    "e-sliding-bottom": (22, dict(DIAGNOSE_ELLIPSOID, effects=("sliding-bottom",))),
+    "e-compressibility": (24, dict(DIAGNOSE_ELLIPSOID, nu=0.3)),
+    "e-inclusion": (25, dict(DIAGNOSE_ELLIPSOID,
+                             hidden_regions=(Region("C", "sphere", center_mm=(32.0, 20.0, 25.0), radius_mm=4.0),),
+                             moduli_kPa={"B": 24.0, "A": 9.0, "C": 72.0})),
+    "e-hyper": (26, dict(DIAGNOSE_ELLIPSOID, effects=("hyperelastic",), depth_mm=7.5, frames_at_mm=(0.0, 3.75, 7.5))),
+    "e-none-27": (27, dict(DIAGNOSE_ELLIPSOID)),
+})
 DIAGNOSE_DIR = COMMITTED / "diagnose"
 
 

