@@ -276,12 +276,9 @@ IMAGE_CANDIDATES = ("sliding-bottom", "probe-slip", "compressibility", "viscoela
 # in 6 of 7 (+17% in one: once the bottom slides, the field barely depends on
 # the 7 mm inclusion, and mesh-to-mesh differences move it), so E_A holds 20%.
 # The "e-" cases are the soft ellipsoid phantom (synthetic.DIAGNOSE_ELLIPSOID; sliding-bottom
-# seed 22, Poisson's ratio 0.3 seed 24). Its probe-slip case (seed 23) is not a test: there the
-# slipping and bonded models differ by 0.13-0.26 px RMS at the tracked blocks (0.33-0.62 px on
-# the first phantom), the size of the tracking noise and the mesh error; after the refit the
-# slipping model's error beyond the noise is 0.197 px against the baseline's 0.235 px, and the
-# diagnosis ranks probe-slip first (+29) but gives the verdict none (see docs/model-check.md,
-# "Hidden effects, measured").
+# seed 22, Poisson's ratio 0.3 seed 24). Its probe slip (seed 23) leaves less in the images than
+# the noise and the mesh error, so it is measured in docs/model-check.md ("Hidden effects,
+# measured"), not tested.
 IMAGE_CASES = [("sliding-bottom", "sliding-bottom", {"B": 0.10, "A": 0.20}),
                ("probe-slip", "probe-slip", {"B": 0.10, "A": 0.10}),
                ("compressibility", "compressibility", {"B": 0.10, "A": 0.10}),
@@ -340,7 +337,8 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     c = d.candidate("inclusion")
     assert np.linalg.norm(np.array(c.inclusion["center_mm"]) - c_true) < within_mm, c.inclusion
     assert c.parameters[f"E_{c.inclusion['name']}_kPa"] > c.parameters["E_B_kPa"], c.parameters  # stiffer
-    described = {k: v for k, v in truth["moduli_kPa"].items() if k in ("A", "B")}
+    hidden = {r["name"] for r in truth["hidden_regions"]}
+    described = {k: v for k, v in truth["moduli_kPa"].items() if k not in hidden}
     for region, err in _moduli_errors(c.parameters, described).items():
         assert abs(err) < 0.10, (region, err, d.lines())
     # The located sphere (one of three radii, centre not refined) is meshed as a region; that mesh is

@@ -606,11 +606,8 @@ class IdentificationPanel(Panel):
 
     def _task_done(self, payload) -> None:
         result, lines = payload
-        # no more timer draws: one landing between this and ``finished`` would put the
-        # running progress text back over "done"
-        self.timer.stop()
         self._drain()
-        self._ended = True
+        self._ended = True  # a draw tick before ``finished`` stops the timer must not put the running text back
         s = self.session
         job = self.job
         if job is not None and s.specimen != job.experiment.specimen:
@@ -641,14 +638,12 @@ class IdentificationPanel(Panel):
                  result.outcome.seconds)
 
     def _task_failed(self, exc, details) -> None:
-        self.timer.stop()
         self._ended = True
         self.state.setText(f"Failed: {exc}")
         self.progress.setFormat("failed")
         self.error.emit(exc, details)
 
     def _task_cancelled(self) -> None:
-        self.timer.stop()
         self._drain()
         self._ended = True
         self.state.setText(f"Cancelled after {self._n_total} evaluations.")
