@@ -88,6 +88,8 @@ DIAGNOSE_ELLIPSOID = dict(size_mm=(44.0, 40.0, 32.0),
 DIAGNOSE_CASES.update({
     "e-visco": (21, dict(DIAGNOSE_ELLIPSOID, effects=("viscoelastic",), g1=0.35, tau1_s=2.0, hold_s=6.0)),
     "e-sliding-bottom": (22, dict(DIAGNOSE_ELLIPSOID, effects=("sliding-bottom",))),
+    # measured by bench/probe_slip_signal.py, not tested (see tests/core/test_diagnose.py)
+    "e-probe-slip": (23, dict(DIAGNOSE_ELLIPSOID, effects=("probe-slip",))),
     "e-compressibility": (24, dict(DIAGNOSE_ELLIPSOID, nu=0.3)),
     "e-inclusion": (25, dict(DIAGNOSE_ELLIPSOID,
                              hidden_regions=(Region("C", "sphere", center_mm=(32.0, 20.0, 25.0), radius_mm=4.0),),

@@ -277,8 +277,8 @@ IMAGE_CANDIDATES = ("sliding-bottom", "probe-slip", "compressibility", "viscoela
 # the 7 mm inclusion, and mesh-to-mesh differences move it), so E_A holds 20%.
 # The "e-" cases are the soft ellipsoid phantom (synthetic.DIAGNOSE_ELLIPSOID; sliding-bottom
 # seed 22, Poisson's ratio 0.3 seed 24). Its probe slip (seed 23) leaves less in the images than
-# the noise and the mesh error, so it is measured in docs/model-check.md ("Hidden effects,
-# measured"), not tested.
+# the noise and the mesh error, so it is measured (bench/probe_slip_signal.py, docs/model-check.md
+# "Hidden effects, measured"), not tested.
 IMAGE_CASES = [("sliding-bottom", "sliding-bottom", {"B": 0.10, "A": 0.20}),
                ("probe-slip", "probe-slip", {"B": 0.10, "A": 0.10}),
                ("compressibility", "compressibility", {"B": 0.10, "A": 0.10}),
