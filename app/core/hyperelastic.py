@@ -13,7 +13,7 @@ R(u) = f_int(u) = 0 on the free dofs is solved by a modified Newton iteration
 whose fixed matrix is a factorized tangent, accelerated by Anderson mixing,
 with a backtracking line search on the stored energy. A tangent is refactorized
 only where the iteration is slow, and only a positive definite one is used
-(PARDISO's inertia tells): off the equilibrium path, e.g. at a predicted state
+(its Cholesky factorization fails otherwise): off the equilibrium path, e.g. at a predicted state
 beside the probe's edges, the tangent can have negative eigenvalues, its step
 need not lower the energy, and iterating with it stalled the walk (on the demo
 phantom at 12.5 of 14.8 mm, with steps of 0.03 mm failing, although the
@@ -154,6 +154,8 @@ MIN_STEP_FRACTION = 1.0 / 64
 # demo this saved 3 of the cold walk's 14 factorizations, and 3 of the 4 a
 # refresh inside a fit made when the moduli ratios had moved by more than 10%)
 KEEP_ITERATIONS = 12
+# factors sharing one analysis: the linear one, one per requested travel, the walk's and a spare
+FACTOR_SLOTS = 16
 
 
 class _StepFailed(Exception):
@@ -388,9 +390,13 @@ class HyperelasticModel:
         return sp.csr_matrix((data, self._ffu_indices, self._ffu_indptr), shape=(n, n))
 
     def _factor(self, data) -> SymmetricFactor:
+        """A new factor; every tangent has the same pattern, so it shares a live
+        factor's analysis (else reuses its ordering: METIS once)."""
         self.n_factorizations += 1
-        f = SymmetricFactor(self._upper_matrix(data), single=self.single, ordering=self._ordering)
-        self._ordering = f.ordering  # every tangent has the same pattern: METIS once
+        live = [p.factor for p in (*self._cache.values(), self._walk and self._walk[1], self._scratch) if p]
+        f = SymmetricFactor(self._upper_matrix(data), single=self.single, definite=True, ordering=self._ordering,
+                            share=next(iter(live), None), slots=FACTOR_SLOTS)
+        self._ordering = f.ordering
         return f
 
     def free(self) -> None:
@@ -478,7 +484,22 @@ class HyperelasticModel:
         if own is not None and n_kept <= KEEP_ITERATIONS:
             own.at_equilibrium = True
             return
-        self._cache[d] = self._factor_into(own, self.tangent_upper(u, mu_e, lam_e) / theta[0], ratios, True)
+        if own is None:
+            own, self._scratch = self._scratch, None
+        own = self._definite_into(own, self.tangent_upper(u, mu_e, lam_e) / theta[0], ratios, True)
+        if own.factor.positive_definite is False:  # not a stable equilibrium: no warm start from it
+            self._cache.pop(d, None)
+            self._recycle(own)
+        else:
+            self._cache[d] = own
+
+    def _recycle(self, p: _Preconditioner) -> None:
+        """Keep a factor no longer needed as the spare (refactorizing it later skips
+        the analysis a new one needs), or free it when there is a spare already."""
+        if self._scratch is None:
+            self._scratch = p
+        elif p is not self._scratch:
+            p.factor.free()
 
     def _factor_into(self, p: _Preconditioner | None, data, ratios, at_equilibrium: bool) -> _Preconditioner:
         """``p`` refactorized with the tangent values ``data`` (a new factor if None)."""
@@ -541,11 +562,11 @@ class HyperelasticModel:
         ratios = theta / theta[0]
         p = self._cache.get(0.0)
         if p is None or not _near(ratios, p.ratios):
-            if p is not None:
-                p.factor.free()
-            u0 = np.zeros(self.n_dofs)
             mu_e, lam_e = self.element_moduli(ratios, nu)
-            p = _Preconditioner(self._factor(self.tangent_upper(u0, mu_e, lam_e)), ratios, 1.0)
+            p = self._factor_into(p, self.tangent_upper(np.zeros(self.n_dofs), mu_e, lam_e), ratios, False)
+            if p.factor.positive_definite is False:
+                raise ElastoidError("the linear stiffness is not positive definite: the specimen is not held "
+                                    "(check the boundary conditions) or a region's modulus is not positive")
             self._cache[0.0] = p
         return p
 
@@ -606,10 +627,8 @@ class HyperelasticModel:
                         old, self._cache[d] = self._cache.get(d), new
                     else:
                         old, self._walk = (self._walk[1] if self._walk else None), (d, new)
-                    if old is not None and old is not pre:
-                        old.factor.free()
-                    elif old is not None:  # recycled as the next trial factor
-                        self._scratch = old
+                    if old is not None:  # recycled as the next trial factor (a refactorization
+                        self._recycle(old)  # skips the symbolic analysis a new factor needs)
                     pre, since = new, it
                     self.trace.append((d, "reform"))
                 X, G, hist = [], [], [hist[-1]]
@@ -639,19 +658,25 @@ class HyperelasticModel:
 
     def _try_factor(self, data, ratios) -> _Preconditioner | None:
         """A factor of the tangent values ``data`` (into the spare factor), or None
-        when the matrix is not positive definite (its inertia, from PARDISO)."""
-        p = self._factor_into(self._scratch, data, ratios, False)
-        # indefinite: shift it towards its diagonal (a Levenberg-Marquardt step,
-        # between Newton's and steepest descent's) until it is positive definite
+        when the matrix is not positive definite (its Cholesky factorization fails)."""
+        p = self._definite_into(self._scratch, data, ratios, False)
+        if p.factor.positive_definite is False:
+            self._scratch = p
+            return None
+        self._scratch = None
+        return p
+
+    def _definite_into(self, p: _Preconditioner | None, data, ratios, at_equilibrium: bool) -> _Preconditioner:
+        """``p`` (a new factor if None) refactorized with the tangent values ``data``,
+        shifted towards their diagonal (a Levenberg-Marquardt step, between Newton's
+        and steepest descent's) until positive definite, by up to 100%; check
+        ``p.factor.positive_definite``."""
+        p = self._factor_into(p, data, ratios, at_equilibrium)
         shift = 1e-3
-        while p.factor.negative_eigenvalues and shift <= 1.0:
+        while p.factor.positive_definite is False and shift <= 1.0:
             shifted = data.copy()
             shifted[self._diag] *= 1.0 + shift
             p.factor.refactor(shifted)
             self.n_factorizations += 1
             shift *= 10.0
-        if p.factor.negative_eigenvalues:
-            self._scratch = p
-            return None
-        self._scratch = None
         return p

@@ -63,3 +63,61 @@ def test_symmetric_factor_reports_the_inertia_of_an_indefinite_matrix(monkeypatc
         b = rng.normal(size=n)
         assert np.allclose(A @ f.solve(b), b, atol=1e-8)
         f.free()
+
+
+def test_a_cholesky_factor_reports_a_matrix_that_is_not_positive_definite():
+    """The hyperelastic iteration factorizes its tangents by Cholesky (faster than
+    LDL^T) and learns from a failed factorization that a tangent is not positive
+    definite: the failure is reported, not raised, solving with it is refused,
+    and the same factor serves again once refactorized with definite values."""
+    from app.core.errors import ElastoidError
+
+    if not solver.HAVE_PARDISO:
+        pytest.fail("MKL PARDISO is expected on this platform (x86_64 with mkl)")
+    rng = np.random.default_rng(1)
+    n = 60
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    eig = rng.uniform(0.5, 2.0, n)
+    spd = (Q * eig) @ Q.T
+    indefinite = spd - 0.6 * np.eye(n)  # the smallest eigenvalues turn negative
+    assert np.linalg.eigvalsh(indefinite).min() < 0
+    b = rng.normal(size=n)
+    for single in (False, True):
+        f = solver.SymmetricFactor(sp.csr_matrix(np.triu(indefinite)), single=single, definite=True)
+        assert f.positive_definite is False
+        with pytest.raises(ElastoidError, match="not positive definite"):
+            f.solve(b)
+        f.refactor(sp.csr_matrix(np.triu(spd)).data)
+        assert f.positive_definite is True
+        assert np.allclose(spd @ f.solve(b), b, atol=1e-8 if not single else 1e-4)
+        f.free()
+
+
+def test_factors_sharing_one_analysis_solve_independently():
+    """Factors of one pattern share one PARDISO analysis (the hyperelastic model
+    keeps one per load step): each solves its own matrix, freeing one leaves the
+    others intact and frees its slot, and a factor beyond the slots gets an
+    analysis of its own."""
+    if not solver.HAVE_PARDISO:
+        pytest.fail("MKL PARDISO is expected on this platform (x86_64 with mkl)")
+    A = _spd(seed=2)
+    U = sp.triu(A, format="csr")
+    U.sort_indices()
+    b = np.linspace(-1.0, 1.0, A.shape[0])
+    first = solver.SymmetricFactor(U, single=False, definite=True, slots=3)
+    scaled = [solver.SymmetricFactor(sp.csr_matrix((k * U.data, U.indices, U.indptr), shape=U.shape),
+                                     single=False, definite=True, share=first) for k in (2.0, 3.0)]
+    assert all(f._handle is first._handle for f in scaled)
+    beyond = solver.SymmetricFactor(U, single=False, definite=True, share=first)  # the 4th of 3 slots
+    assert beyond._handle is not first._handle
+    for k, f in zip((1.0, 2.0, 3.0, 1.0), [first, *scaled, beyond]):
+        assert np.abs(k * (A @ f.solve(b)) - b).max() < 1e-10
+    first.free()  # its factor only: the analysis stays with the others
+    assert np.abs(3.0 * (A @ scaled[1].solve(b)) - b).max() < 1e-10
+    again = solver.SymmetricFactor(sp.csr_matrix((5.0 * U.data, U.indices, U.indptr), shape=U.shape),
+                                   single=False, definite=True, share=scaled[0])
+    assert again._handle is scaled[0]._handle and again.mnum == 1  # the slot freed
+    assert np.abs(5.0 * (A @ again.solve(b)) - b).max() < 1e-10
+    assert np.abs(2.0 * (A @ scaled[0].solve(b)) - b).max() < 1e-10
+    for f in (*scaled, again, beyond):
+        f.free()
