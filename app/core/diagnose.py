@@ -23,7 +23,9 @@ with k the parameters the effect adds (a switch without a continuous parameter
 counts as one) and N the number of measurements. The noise model does not
 know the model's own (mesh) error, so a candidate must also be material
 (:func:`is_material`): remove at least 30% of the current model's error beyond
-the noise. The verdict is the best-scoring candidate with a positive score that
+the noise, with a fit that is physically a finding (a Poisson's ratio within
+0.02 of the model's is not: see :func:`app.core.effects.compressibility.negligible`).
+The verdict is the best-scoring candidate with a positive score that
 is material, else "none". :func:`signature_match` says how well the misfit has
 the shape the effect predicts.
 
@@ -281,6 +283,7 @@ class Candidate:
     # the misfit the candidate is scored against when it is not the current model's:
     # for an inclusion, the current model refitted on the inclusion's mesh (see same_mesh_model)
     reference: dict | None = None
+    negligible: str = ""  # why the fitted effect is physically no finding, whatever it removes ("" if it is one)
 
     @property
     def explanation(self) -> str:
@@ -291,6 +294,8 @@ class Candidate:
             text += f"; the misfit has the pattern this effect predicts to {max(self.signature, 0.0):.0%}"
         if self.material or not math.isfinite(self.score) or self.score <= 0 or not self.misfit:
             return text
+        if self.negligible:
+            return f"{text} (but {self.negligible}, so it is not a verdict)"
         return (f"{text} (but it removes less than {MATERIAL_FRACTION:.0%} of the error beyond the "
                 f"noise, so it is not a verdict)")
 
@@ -306,6 +311,8 @@ class Candidate:
              "added_parameters": self.n_parameters, "seconds": round(self.seconds, 2)}
         if self.inclusion:
             d["inclusion"] = self.inclusion
+        if self.negligible:
+            d["negligible"] = self.negligible
         if self.reference is not None:
             d["reference_misfit"] = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.reference.items()}
         return d
@@ -554,6 +561,8 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
             ref = cand.reference or base.misfit
             cand.score = ref["chi2"] - cand.misfit["chi2"] - cand.n_parameters * lnN
             cand.material = is_material(ref, cand.misfit)
+            cand.negligible = _negligible(eff, problem, cand)
+            cand.material = cand.material and not cand.negligible
         out.append(cand)
     out.sort(key=lambda c: -c.score)
     earned = [c for c in out if c.score > 0 and c.material]
@@ -623,6 +632,16 @@ def _starts(eff, problem: EffectProblem, start: dict) -> list[dict]:
     if eff == "compressibility":
         return [dict(start, nu=0.45), dict(start, nu=0.35)]
     return [start]
+
+
+def _negligible(eff, problem: EffectProblem, cand: Candidate) -> str:
+    """Why the fitted effect is physically no finding whatever it removes (its
+    module's rule), or ""."""
+    if eff == "compressibility" and "nu" in cand.parameters:
+        from app.core.effects.compressibility import negligible
+
+        return negligible(cand.parameters["nu"], problem.nu)
+    return ""
 
 
 def _evidence(eff, problem, base: Candidate, cand: Candidate, tracked, lik0, lik) -> str:

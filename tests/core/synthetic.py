@@ -77,6 +77,8 @@ DIAGNOSE_CASES = {
     "probe-slip": (14, dict(effects=("probe-slip",))),
     "probe-slip-15": (15, dict(effects=("probe-slip",))),
     "two-16": (16, dict(effects=("viscoelastic",), nu=0.3)),
+    "none-17": (17, {}),
+    "compressibility-45": (18, dict(nu=0.45)),
     "compressibility": (14, dict(nu=0.3)),
     "inclusion": (13, dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),),
                            moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})),
@@ -98,6 +100,7 @@ DIAGNOSE_CASES.update({
                              moduli_kPa={"B": 24.0, "A": 9.0, "C": 72.0})),
     "e-hyper": (26, dict(DIAGNOSE_ELLIPSOID, effects=("hyperelastic",), depth_mm=7.5, frames_at_mm=(0.0, 3.75, 7.5))),
     "e-none-27": (27, dict(DIAGNOSE_ELLIPSOID)),
+    "e-none-29": (29, dict(DIAGNOSE_ELLIPSOID)),
     "e-two": (28, dict(DIAGNOSE_ELLIPSOID, effects=("viscoelastic", "sliding-bottom"))),
 })
 DIAGNOSE_DIR = COMMITTED / "diagnose"

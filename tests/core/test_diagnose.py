@@ -102,11 +102,16 @@ def test_hidden_viscoelasticity_on_the_second_geometry(tmp_path_factory):
         assert abs(err) < 0.10, (region, err, d.lines())
 
 
-@pytest.mark.parametrize("case", ["none-5", "none-6", "e-none-27"])
+@pytest.mark.parametrize("case", ["none-5", "none-6", "none-17", "e-none-27", "e-none-29"])
 def test_no_hidden_effect_gives_none(tmp_path_factory, case):
     """Every candidate of the catalogue (38 s per seed here, 2026-11-25; 56 s on
     the soft ellipsoid, seed 27). The spheres the scans locate are meshed as
-    regions; their meshes are committed (fTetWild is not deterministic)."""
+    regions; their meshes are committed (fTetWild is not deterministic).
+
+    Seed 17 (2026-11-26) was a false positive before a fitted Poisson's ratio
+    had to move at least 0.02 from the model's: compressibility at nu 0.482
+    scored +55.4 and removed 48% of the error beyond the noise (the mesh error;
+    every seed here fits nu 0.482-0.487)."""
     exp = _make(tmp_path_factory, case)
     d = diagnose(exp, mesh_settings=ID_MESH)
     assert {c.effect for c in d.candidates} == set(EFFECT_IDS), d.lines()
@@ -256,6 +261,21 @@ def test_two_hidden_effects_are_found_one_after_the_other(tmp_path_factory, case
         assert abs(err) < 0.10, (region, err, second.lines())
 
 
+def test_a_poisson_ratio_near_the_models_is_no_finding():
+    """The mesh error alone pulls a fitted Poisson's ratio from 0.49 to
+    0.482-0.487 on data with nothing missing: within 0.02 of the model's it is
+    reported, with the reason, and is not material; 0.45 is a finding."""
+    from app.core.diagnose import Candidate
+    from app.core.effects.compressibility import negligible
+
+    assert negligible(0.482, 0.49) and negligible(0.4995, 0.49)
+    assert negligible(0.45, 0.49) == "" and negligible(0.3, 0.49) == ""
+    c = Candidate("compressibility", ("compressibility",), {"nu": 0.482}, {}, {"chi2": 1.0}, 1, 55.4,
+                  "the tissue changes volume", negligible=negligible(0.482, 0.49))
+    assert "no finding" in c.explanation and c.explanation.endswith("so it is not a verdict)")
+    assert c.to_json_dict()["negligible"] == c.negligible and c.to_json_dict()["material"] is False
+
+
 def test_history_is_immutable_and_round_trips():
     h = ModelHistory()
     h1 = h.with_version((), {"E_B_kPa": 10.0}, {"total": -1.0}, {"force_rms_N": 0.3, "displacement_rms_px": 1.0})
@@ -296,9 +316,10 @@ IMAGE_CANDIDATES = ("sliding-bottom", "probe-slip", "compressibility", "viscoela
 IMAGE_CASES = [("sliding-bottom", "sliding-bottom", {"B": 0.10, "A": 0.20}),
                ("probe-slip", "probe-slip", {"B": 0.10, "A": 0.10}),
                ("probe-slip-15", "probe-slip", {"B": 0.10, "A": 0.10}),
-               ("compressibility", "compressibility", {"B": 0.10, "A": 0.10}),
+               ("compressibility", "compressibility", {"B": 0.10, "A": 0.10, "nu": 0.08}),
+               ("compressibility-45", "compressibility", {"B": 0.10, "A": 0.10, "nu": 0.02}),
                ("e-sliding-bottom", "sliding-bottom", {"B": 0.10, "A": 0.20}),
-               ("e-compressibility", "compressibility", {"B": 0.10, "A": 0.10})]
+               ("e-compressibility", "compressibility", {"B": 0.10, "A": 0.10, "nu": 0.08})]
 
 
 @pytest.mark.parametrize("case,effect,tol", IMAGE_CASES, ids=[c[0] for c in IMAGE_CASES])
@@ -316,17 +337,21 @@ def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_fa
     outline was meshed); the issue's 3x is asserted. On the soft ellipsoid
     (2026-11-26): sliding-bottom 14x (moduli -1.5%, +0.4%; the baseline's E_A
     was +241%), compressibility 10x (nu 0.300, moduli -1.3%, -5.2%). Probe slip,
-    seed 15 (2026-11-26): 4.4x, moduli -2.0%, +0.6% (the baseline's E_A was -23%)."""
+    seed 15 (2026-11-26): 4.4x, moduli -2.0%, +0.6% (the baseline's E_A was -23%).
+    A Poisson's ratio of 0.45 (seed 18, 2026-11-26): nu 0.444, 17x, moduli -0.2%,
+    -7.0% (baseline -7%, -22%); the verdict needs nu at least 0.02 from the
+    model's 0.49 (see compressibility.NU_NEGLIGIBLE)."""
     exp = _make(tmp_path_factory, case)
     d = diagnose(exp, candidates=IMAGE_CANDIDATES, mesh_settings=ID_MESH)
     assert d.verdict == effect, d.lines()
     c = d.candidate(effect)
     assert c.material and c.signature >= 0.6, d.lines()
-    for region, err in _moduli_errors(c.parameters, read_truth(exp.path)["moduli_kPa"]).items():
+    truth = read_truth(exp.path)
+    for region, err in _moduli_errors(c.parameters, truth["moduli_kPa"]).items():
         assert abs(err) < tol[region], (region, err, d.lines())
     assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
     if effect == "compressibility":
-        assert c.parameters["nu"] == pytest.approx(0.3, abs=0.08)
+        assert c.parameters["nu"] == pytest.approx(truth["nu"], abs=tol["nu"])
 
 
 @pytest.mark.parametrize("case,within_mm", [("inclusion", 3.0), ("e-inclusion", 6.0)])
