@@ -30,6 +30,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QGridLay
 
 from app.core.diagnose import MATERIAL_FRACTION
 from app.core.effects import EFFECT_IDS, INFO
+from app.core.effects.compressibility import NU_NEGLIGIBLE
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
                                  diagnosis_rows, frame_label, history_rows, parameters_text)
@@ -329,7 +330,8 @@ class ModelCheckPanel(Panel):
         lay.addWidget(hint("Score = chi2(current) - chi2(current + effect) - k ln N: the drop of the misfit under "
                            "the noise model, less what the effect's k parameters cost (BIC). The verdict is the best "
                            "positive score among the effects that also remove at least "
-                           f"{MATERIAL_FRACTION:.0%} of the error beyond the noise, else none."))
+                           f"{MATERIAL_FRACTION:.0%} of the error beyond the noise (and move a Poisson's ratio at "
+                           f"least {NU_NEGLIGIBLE} from the model's), else none."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
