@@ -560,9 +560,8 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
         if math.isfinite(cand.score):
             ref = cand.reference or base.misfit
             cand.score = ref["chi2"] - cand.misfit["chi2"] - cand.n_parameters * lnN
-            cand.material = is_material(ref, cand.misfit)
             cand.negligible = _negligible(eff, problem, cand)
-            cand.material = cand.material and not cand.negligible
+            cand.material = is_material(ref, cand.misfit) and not cand.negligible
         out.append(cand)
     out.sort(key=lambda c: -c.score)
     earned = [c for c in out if c.score > 0 and c.material]

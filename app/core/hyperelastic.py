@@ -393,9 +393,9 @@ class HyperelasticModel:
         """A new factor; every tangent has the same pattern, so it shares a live
         factor's analysis (else reuses its ordering: METIS once)."""
         self.n_factorizations += 1
-        live = [p.factor for p in (*self._cache.values(), self._walk and self._walk[1], self._scratch) if p]
+        live = (p.factor for p in (*self._cache.values(), self._walk and self._walk[1], self._scratch) if p)
         f = SymmetricFactor(self._upper_matrix(data), single=self.single, definite=True, ordering=self._ordering,
-                            share=next(iter(live), None), slots=FACTOR_SLOTS)
+                            share=next(live, None), slots=FACTOR_SLOTS)
         self._ordering = f.ordering
         return f
 
@@ -564,7 +564,9 @@ class HyperelasticModel:
         if p is None or not _near(ratios, p.ratios):
             mu_e, lam_e = self.element_moduli(ratios, nu)
             p = self._factor_into(p, self.tangent_upper(np.zeros(self.n_dofs), mu_e, lam_e), ratios, False)
-            if p.factor.positive_definite is False:
+            if p.factor.positive_definite is False:  # not kept: its ratios would pass for a valid factor's
+                self._cache.pop(0.0, None)
+                p.factor.free()
                 raise ElastoidError("the linear stiffness is not positive definite: the specimen is not held "
                                     "(check the boundary conditions) or a region's modulus is not positive")
             self._cache[0.0] = p
