@@ -59,7 +59,7 @@ if __name__ == "__main__":
     print("BASE", errs(b.parameters), {k: round(v, 4) for k, v in b.misfit.items() if isinstance(v, float)})
     for c in d.candidates:
         if not c.misfit: continue
-        red = {k: round(b.misfit[k] / max(c.misfit[k], 1e-12), 2) for k in ("force_rms_N", "displacement_rms_px", "displacement_systematic_px", "force_excess_N", "displacement_excess_px", "displacement_typical_excess_px", "chi2")}
+        red = {k: round(b.misfit[k] / max(c.misfit[k], 1e-12), 2) for k in ("force_rms_N", "displacement_rms_px", "displacement_systematic_px", "force_excess_N", "displacement_excess_px", "chi2")}
         print("CAND", c.effect, errs(c.parameters), "reduction", red, {k: round(v, 3) for k, v in c.parameters.items() if not k.startswith("E_")})
     print("seconds", round(time.time() - t0))
     if "+" in eff and d.verdict != "none":
@@ -74,6 +74,6 @@ if __name__ == "__main__":
         print("BASE2", errs(b2.parameters))
         for c2 in d2.candidates:
             if not c2.misfit: continue
-            red = {k: round(b.misfit[k] / max(c2.misfit[k], 1e-12), 2) for k in ("force_rms_N", "displacement_rms_px", "force_excess_N", "displacement_excess_px", "displacement_typical_excess_px", "chi2")}
+            red = {k: round(b.misfit[k] / max(c2.misfit[k], 1e-12), 2) for k in ("force_rms_N", "displacement_rms_px", "force_excess_N", "displacement_excess_px", "chi2")}
             print("CAND2", c2.effect, errs(c2.parameters), "reduction from the first baseline", red)
         print("seconds", round(time.time() - t1))

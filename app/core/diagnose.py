@@ -150,15 +150,13 @@ MATERIAL_MIN = 0.5  # an error below this fraction of its noise floor is nothing
 
 def explained(before: dict, after: dict) -> dict:
     """How much of the current model's error (the misfit beyond the noise) a
-    candidate removes, per measure: {"force": fraction, "displacement": fraction
-    (RMS over the blocks), "typical displacement": fraction (at the median block,
-    see typical_excess)}, with None for a measure whose current error is below
-    MATERIAL_MIN of its floor (there is nothing there to explain)."""
+    candidate removes, per channel: {"force": fraction, "displacement": fraction},
+    with None for a channel whose current error is below MATERIAL_MIN of its floor
+    (there is nothing there to explain)."""
     out = {}
-    for ch, key, floor_key in (("force", "force_excess_N", "force_floor_N"),
-                               ("displacement", "displacement_excess_px", "displacement_floor_px"),
-                               ("typical displacement", "displacement_typical_excess_px", "displacement_floor_px")):
-        e0, e1, floor = before.get(key), after.get(key), before.get(floor_key)
+    for ch, unit in (("force", "N"), ("displacement", "px")):
+        e0, e1 = before.get(f"{ch}_excess_{unit}"), after.get(f"{ch}_excess_{unit}")
+        floor = before.get(f"{ch}_floor_{unit}")
         if e0 is None or e1 is None or floor is None or e0 < MATERIAL_MIN * floor or e0 <= 0:
             out[ch] = None
         else:
@@ -168,8 +166,7 @@ def explained(before: dict, after: dict) -> dict:
 
 def is_material(before: dict, after: dict) -> bool:
     """A candidate is material when it removes at least MATERIAL_FRACTION of the
-    current model's error in the force, in the displacement's RMS or at its
-    typical block."""
+    current model's error in the force or in the displacement."""
     return any(f is not None and f >= MATERIAL_FRACTION for f in explained(before, after).values())
 
 
@@ -202,39 +199,6 @@ def excess(rms: float, floor: float) -> float:
     return float(np.sqrt(max(rms * rms - floor * floor, 0.0)))
 
 
-_NC = np.concatenate([[0.0], np.logspace(-3, 4, 300)])  # noncentrality lambda
-_NC_MEDIAN: np.ndarray | None = None  # the median of a noncentral chi-square (2 dof) / 2, at each lambda
-
-
-def typical_excess(ratios: np.ndarray, floor: float) -> float:
-    """The error beyond the noise at a typical block, in px.
-
-    ``ratios``: each block's squared smoothed misfit over what the noise alone
-    leaves there (both components; mean 1 under noise). A block with a model
-    error e and noise of sigma per component has a ratio distributed as a
-    noncentral chi-square with 2 degrees of freedom and noncentrality
-    lambda = e^2 / sigma^2, halved. The median ratio over the blocks gives lambda
-    (0 at the noise's median ln 2), and the error is sqrt(lambda / 2) times the
-    floor's RMS ``floor``: a model error spread over the image is recovered as
-    it is. Unlike the RMS, it does not follow a few worst blocks: with a hidden
-    Poisson's ratio of 0.47, once nu was fitted, one block beside the probe's
-    edge held 46% of the deeper frame's sum and the worst tenth 66%, where the
-    strain, the mesh's error and tracking's are largest."""
-    global _NC_MEDIAN
-    if len(ratios) == 0:
-        return 0.0
-    if _NC_MEDIAN is None:
-        from scipy import stats
-
-        _NC_MEDIAN = stats.ncx2.median(2, np.maximum(_NC, 1e-12)) / 2
-    m = float(np.median(ratios))
-    if m > _NC_MEDIAN[-1]:  # far beyond the table: the median is lambda / 2 + 1 there
-        lam = 2.0 * (m - 1.0)
-    else:
-        lam = float(np.interp(m, _NC_MEDIAN, _NC))  # 0 at or below the noise's median
-    return float(floor * math.sqrt(lam / 2.0))
-
-
 class Likelihood:
     """-2 log-likelihood (up to a constant) of a problem's model at parameters."""
 
@@ -249,14 +213,13 @@ class Likelihood:
         # and what the noise alone leaves in the 3 x 3 medians (a median of k
         # independent Gaussian values has variance about (pi / 2) sigma^2 / k per
         # component, sigma^2 averaged over the neighbourhood)
-        self._sigma_valid, self._floor_sq, self._block_floor_sq = [], [], []
+        self._sigma_valid, self._floor_sq = [], []
         for j, tp in enumerate(tracked.pairs):
             sigma = _block_sigma(tp, noise, j)
             k = (_neighbourhoods(tp.valid, tp.grid_index) >= 0).sum(axis=1)
             s2 = _neighbour_mean(sigma**2, tp.valid, tp.grid_index)
             self._sigma_valid.append(sigma[tp.valid][:, None])
-            self._block_floor_sq.append(2 * (math.pi / 2) * s2 / np.maximum(k, 1))  # per block, both components
-            self._floor_sq.append(float(self._block_floor_sq[-1].sum()))
+            self._floor_sq.append(float((2 * (math.pi / 2) * s2 / np.maximum(k, 1)).sum()))
 
     def model_px(self, params: dict, a=None) -> list[np.ndarray]:
         """Model displacement (n, 2) px at every tracked block of each pair."""
@@ -272,7 +235,7 @@ class Likelihood:
         rF = (P.model_force_N(params, a) - P.log_F) / self.noise.force_sigma_N
         chi_F = float(rF @ rF)
         c = self.noise.huber
-        chi_u, sq, n, sys_sq, sys_n, floor_sq, ratios = 0.0, 0.0, 0, 0.0, 0, 0.0, []
+        chi_u, sq, n, sys_sq, sys_n, floor_sq = 0.0, 0.0, 0, 0.0, 0, 0.0
         for j, (tp, m) in enumerate(zip(self.tracked.pairs, self.model_px(params, a))):
             r = (tp.measured_px - m)[tp.valid]
             sq += float((r**2).sum())
@@ -283,7 +246,6 @@ class Likelihood:
             sys_sq += float((s**2).sum())
             sys_n += len(s)
             floor_sq += self._floor_sq[j]
-            ratios.append((s**2).sum(axis=1) / self._block_floor_sq[j])
         return {"total": chi_F + chi_u, "force": chi_F, "images": chi_u,
                 "force_rms_N": float(np.sqrt(np.mean((rF * self.noise.force_sigma_N) ** 2))),
                 "displacement_rms_px": float(np.sqrt(sq / max(n, 1))),
@@ -293,8 +255,6 @@ class Likelihood:
                                          self.noise.force_sigma_N),
                 "displacement_excess_px": excess(float(np.sqrt(sys_sq / max(sys_n, 1))),
                                                  float(np.sqrt(floor_sq / max(sys_n, 1)))),
-                "displacement_typical_excess_px": typical_excess(np.concatenate(ratios) if ratios else np.zeros(0),
-                                                                 float(np.sqrt(floor_sq / max(sys_n, 1)))),
                 # what the noise alone leaves in those two measures
                 "force_floor_N": self.noise.force_sigma_N,
                 "displacement_floor_px": float(np.sqrt(floor_sq / max(sys_n, 1)))}
@@ -408,7 +368,6 @@ def _misfit(lik: Likelihood, params: dict) -> dict:
             "force_rms_N": p["force_rms_N"], "displacement_rms_px": p["displacement_rms_px"],
             "displacement_systematic_px": p["displacement_systematic_px"],
             "force_excess_N": p["force_excess_N"], "displacement_excess_px": p["displacement_excess_px"],
-            "displacement_typical_excess_px": p["displacement_typical_excess_px"],
             "force_floor_N": p["force_floor_N"], "displacement_floor_px": p["displacement_floor_px"],
             "n_force": lik.noise.n_force, "n_images": lik.noise.n_displacement}
 

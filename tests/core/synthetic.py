@@ -79,7 +79,6 @@ DIAGNOSE_CASES = {
     "two-16": (16, dict(effects=("viscoelastic",), nu=0.3)),
     "none-17": (17, {}),
     "compressibility-45": (18, dict(nu=0.45)),
-    "compressibility-47": (19, dict(nu=0.47)),
     "compressibility": (14, dict(nu=0.3)),
     "inclusion": (13, dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),),
                            moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})),

@@ -330,8 +330,7 @@ class ModelCheckPanel(Panel):
         lay.addWidget(hint("Score = chi2(current) - chi2(current + effect) - k ln N: the drop of the misfit under "
                            "the noise model, less what the effect's k parameters cost (BIC). The verdict is the best "
                            "positive score among the effects that also remove at least "
-                           f"{MATERIAL_FRACTION:.0%} of the error beyond the noise (in the force, or in the displacement "
-                           "over the image or at its typical block; and move a Poisson's ratio at "
+                           f"{MATERIAL_FRACTION:.0%} of the error beyond the noise (and move a Poisson's ratio at "
                            f"least {NU_NEGLIGIBLE} from the model's), else none."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
