@@ -23,7 +23,6 @@ import json
 import subprocess
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,6 +50,7 @@ def _errors(params: dict, truth: dict) -> str:
 
 def run(out: Path, name: str) -> list[str]:
     from app.core.effects import INFO
+    from app.core.simulate import read_truth
 
     seed, options, hidden = CASES[name]
     folder = out / name
@@ -60,8 +60,9 @@ def run(out: Path, name: str) -> list[str]:
     _elastoid("diagnose", str(folder), "--json", str(out / f"{name}.json"), "--quiet")
     seconds = time.perf_counter() - t
     d = json.loads((out / f"{name}.json").read_text())
-    truth = tomllib.loads((folder / "truth.toml").read_text())
-    moduli = {k: v for k, v in truth["moduli_kPa"].items() if k in ("A", "B")}
+    truth = read_truth(folder)
+    hidden_regions = {r["name"] for r in truth.get("hidden_regions", [])}
+    moduli = {k: v for k, v in truth["moduli_kPa"].items() if k not in hidden_regions}  # the described ones
     base = d["baseline"]
     row = [name, hidden, d["verdict"], "", "", "", _errors(base["parameters"], moduli), f"{seconds:.0f}"]
     ids = [c["effect"] for c in d["candidates"]]
@@ -69,10 +70,11 @@ def run(out: Path, name: str) -> list[str]:
         c = d["candidates"][ids.index(hidden)]
         key, unit = ("force_excess_N", "N") if INFO[hidden].channel == "force" else ("displacement_excess_px", "px")
         before = (c.get("reference_misfit") or base["misfit"])[key]
-        after = c["misfit"].get(key, float("nan"))
+        after = c["misfit"].get(key)  # none when the candidate could not be fitted
         row[3] = f"{ids.index(hidden) + 1} ({c['score']:+.1f})"
         row[4] = _errors(c["parameters"], moduli)
-        row[5] = f"{before / after:.1f}x ({before:.3g} -> {after:.3g} {unit})" if after > 0 else "to the noise"
+        row[5] = ("not fitted" if after is None else "to the noise" if after <= 0
+                  else f"{before / after:.1f}x ({before:.3g} -> {after:.3g} {unit})")
     return row
 
 
