@@ -12,7 +12,8 @@ tangents, is reported separately. Each diagnosis runs as a user's first one:
 with a mesh cache holding only the demo's own mesh, so that the inclusion
 candidate meshes its sphere every time. The diagnosis row also gives the CPU
 time it used: a diagnosis keeps both cores busy, so its wall time follows its
-CPU work (and this machine's speed of the day).
+CPU work (and this machine's speed of the day). It also gives the diagnosis'
+peak resident memory (Linux: VmHWM, reset before each run).
 """
 
 from __future__ import annotations
@@ -75,10 +76,35 @@ def _cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
+def _reset_peak_rss() -> bool:
+    """Start a new peak resident set (Linux: /proc/self/clear_refs); False when not possible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_rss_gb() -> float:
+    """This process's peak resident set since the last reset (VmHWM), else since it started."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1e6
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
 def bench_diagnose(repeats: int, candidates) -> list[tuple[str, float, str]]:
     from app.core.diagnose import diagnose
     from app.core.experiment import read_experiment
 
+    import gc
     import os
     import shutil
     import tempfile
@@ -92,7 +118,7 @@ def bench_diagnose(repeats: int, candidates) -> list[tuple[str, float, str]]:
     demo_mesh = cache_dir() / f"{key}.npz"
     if not demo_mesh.is_file():
         demo_mesh = ROOT / "tests" / "data" / "meshes" / f"{key}.npz"
-    times, cpus, verdicts, per = [], [], [], {}
+    times, cpus, verdicts, per, peaks = [], [], [], {}, []
     saved = os.environ.get("ELASTOID_CACHE_DIR")
     for _ in range(repeats):
         # each run as a user's first: a cache holding only the demo's own mesh, so the
@@ -102,10 +128,12 @@ def bench_diagnose(repeats: int, candidates) -> list[tuple[str, float, str]]:
             if demo_mesh.is_file():
                 shutil.copy(demo_mesh, cache_dir() / demo_mesh.name)
             try:
+                reset = _reset_peak_rss()
                 t, c = time.perf_counter(), _cpu_seconds()
                 d = diagnose(exp, candidates=candidates)
                 times.append(time.perf_counter() - t)
                 cpus.append(_cpu_seconds() - c)
+                peaks.append((_peak_rss_gb(), reset))
             finally:
                 if saved is None:
                     os.environ.pop("ELASTOID_CACHE_DIR", None)
@@ -114,10 +142,14 @@ def bench_diagnose(repeats: int, candidates) -> list[tuple[str, float, str]]:
         verdicts.append(d.verdict)
         for c in d.candidates:
             per.setdefault(c.effect, []).append(c.seconds)
+        del d, c  # its models would count in the next run's peak
+        gc.collect()
     wall, cpu = statistics.median(times), statistics.median(cpus)
     rows = [("full diagnosis of the demo (median)", wall,
              f"verdict {', '.join(verdicts)}; {cpu:.0f} CPU-seconds (the mesher's included): "
-             f"{cpu / wall:.2f} of the {os.cpu_count()} cores busy")]
+             f"{cpu / wall:.2f} of the {os.cpu_count()} cores busy; peak memory "
+             f"{max(p for p, _ in peaks):.1f} GB{'' if all(r for _, r in peaks) else ' (of the whole process)'}"
+             " (the mesher's child process not counted)")]
     for e, ts in per.items():
         rows.append((f"  candidate {e}", statistics.median(ts),
                      "its scan, mesh and reduced model are built in the background while the others run"

@@ -12,8 +12,9 @@ truth takes minutes to simulate). Prints a table: the verdict, where the
 hidden effect ranked and scored, the moduli with it and with the baseline,
 how much the error beyond the noise falls with it in the effect's channel
 (for the inclusion, against the model on the inclusion's mesh), and the
-diagnosis's wall time. Set ELASTOID_CACHE_DIR to a copy of tests/data/meshes
-to start from the demo's committed identification mesh.
+diagnosis's wall time and peak resident memory. Set ELASTOID_CACHE_DIR to a
+copy of tests/data/meshes to start from the demo's committed identification
+mesh.
 """
 
 from __future__ import annotations
@@ -44,6 +45,19 @@ def _elastoid(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "app.cli", *args], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
 
 
+def _diagnose_peak_gb(*args: str) -> float:
+    """``elastoid diagnose ARGS`` in a child process; its peak resident memory (GB,
+    Linux and macOS report it through wait4; the mesher's own child not counted)."""
+    import os
+
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "diagnose", *args], cwd=ROOT, stdout=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise subprocess.CalledProcessError(proc.returncode, proc.args)
+    return usage.ru_maxrss / (1e6 if sys.platform.startswith("linux") else 1e9)  # KB on Linux, bytes on macOS
+
+
 def _errors(params: dict, truth: dict) -> str:
     return ", ".join(f"{params[f'E_{k}_kPa'] / v - 1:+.1%}" for k, v in truth.items() if f"E_{k}_kPa" in params)
 
@@ -57,14 +71,15 @@ def run(out: Path, name: str) -> list[str]:
     if not (folder / "experiment.toml").is_file():
         _elastoid("simulate", str(folder), "--overwrite", "--seed", str(seed), *options)
     t = time.perf_counter()
-    _elastoid("diagnose", str(folder), "--json", str(out / f"{name}.json"), "--quiet")
+    peak_gb = _diagnose_peak_gb(str(folder), "--json", str(out / f"{name}.json"), "--quiet")
     seconds = time.perf_counter() - t
     d = json.loads((out / f"{name}.json").read_text())
     truth = read_truth(folder)
     hidden_regions = {r["name"] for r in truth.get("hidden_regions", [])}
     moduli = {k: v for k, v in truth["moduli_kPa"].items() if k not in hidden_regions}  # the described ones
     base = d["baseline"]
-    row = [name, hidden, d["verdict"], "", "", "", _errors(base["parameters"], moduli), f"{seconds:.0f}"]
+    row = [name, hidden, d["verdict"], "", "", "", _errors(base["parameters"], moduli), f"{seconds:.0f}",
+           f"{peak_gb:.1f}"]
     ids = [c["effect"] for c in d["candidates"]]
     if hidden in ids:
         c = d["candidates"][ids.index(hidden)]
@@ -85,7 +100,7 @@ def main() -> int:
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     head = ["case", "hidden", "verdict", "hidden's rank (score)", "moduli with it (B, A)", "error falls with it",
-            "baseline moduli (B, A)", "diagnosis s"]
+            "baseline moduli (B, A)", "diagnosis s", "peak GB"]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for name in args.cases.split(","):

@@ -476,6 +476,8 @@ class _InclusionPrep:
                 self.problem = current_model(problem.exp, effects, mesh_settings=mesh_settings,
                                              inclusion=self.inclusion, cancel=cancel, nu=problem.nu)
                 self.reference = same_mesh_model(problem, self.problem, problem.moduli(base.parameters), cancel)
+                for p in (self.problem, self.reference):  # idle until the others are tried (0.3 GB each)
+                    p.release()
             except BaseException as exc:  # handed to the thread that waits for the model
                 self.error = exc
 
@@ -562,6 +564,8 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
             cand.score = ref["chi2"] - cand.misfit["chi2"] - cand.n_parameters * lnN
             cand.negligible = _negligible(eff, problem, cand)
             cand.material = is_material(ref, cand.misfit) and not cand.negligible
+        if cand.problem is not None:  # kept for an add; its factorizations are rebuilt if it needs them
+            cand.problem.release(keep=problem)
         out.append(cand)
     out.sort(key=lambda c: -c.score)
     earned = [c for c in out if c.score > 0 and c.material]
@@ -589,7 +593,8 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
                                            roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind,
                                            inclusion=inclusion, progress=say, cancel=cancel,
                                            near_kPa=problem.moduli(start))
-    if "hyperelastic" in problem.effects and "hyperelastic" in effects and cp._hyper is None:
+    if "hyperelastic" in problem.effects and cp._hyper is None:
+        cp.share_hyperelastic_solver(problem)  # warm from the current model's equilibria if on its FE model
         cp.refresh_hyperelastic(start, cancel=cancel)
     lik = Likelihood(cp, tracked, noise)
     start = cp.complete(start)
@@ -800,7 +805,7 @@ class ModelCheck:
     def _add_version(self, problem, params, cost, note, inclusion) -> ModelVersion:
         mis = _misfit(Likelihood(problem, self.tracked, noise_model(problem, self.tracked)), params)
         self.history = self.history.with_version(problem.effects, params, cost, mis, note, inclusion)
-        self.problem = problem
+        self._switch_to(problem)
         self._problems[self.history.current] = problem
         return self.history.current_version
 
@@ -835,5 +840,12 @@ class ModelCheck:
 
     def revert(self, index: int) -> ModelVersion:
         self.history = self.history.reverted(index)
-        self.problem = self._problems[index]
+        self._switch_to(self._problems[index])
         return self.history.current_version
+
+    def _switch_to(self, problem) -> None:
+        """Make ``problem`` current; the one left keeps its model but frees its
+        factorizations (rebuilt if it becomes current again and needs them)."""
+        if self.problem is not None and self.problem is not problem:
+            self.problem.release(keep=problem)
+        self.problem = problem

@@ -199,6 +199,13 @@ class ReducedModel:
             self._prec = Factorized(self._matrix(theta))
             self.n_full_solves += 1
 
+    def release(self) -> None:
+        """Free the preconditioner's factorization (on the demo's 52,173 free dofs
+        about 0.3 GB, double precision); an enrichment refactorizes it."""
+        if self._prec is not None:
+            self._prec.free()
+            self._prec = None
+
     def _add(self, v) -> bool:
         Vt = self._Vt[: self.k]
         for _ in range(2):  # twice is enough (Kahan)

@@ -178,6 +178,9 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     assert cmp0.frames[0].residual_map.shape == cmp0.frames[0].target_roi.shape
     d = mc.diagnose(candidates=("viscoelastic", "probe-slip"))
     assert d.verdict == "viscoelastic"
+    # each candidate keeps its model for an add but frees what it does not share with the current one
+    assert d.candidate("viscoelastic").problem.rm is mc.problem.rm and mc.problem.rm._prec is not None
+    assert d.candidate("probe-slip").problem.rm._prec is None
     v1 = mc.add()
     assert v1.effects == ("viscoelastic",) and v1.parent == 0
     errs = mc.history.errors()
@@ -186,6 +189,39 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     assert mc.history.compare(0, 1)["added"] == ["viscoelastic"]
     mc.revert(0)
     assert mc.effects == () and len(mc.history) == 2
+
+
+def test_a_candidate_of_a_hyperelastic_model_refreshes_warm_and_release_keeps_what_is_shared(tmp_path_factory):
+    """When the current model has the hyperelastic effect, a candidate on the same
+    FE model (here viscoelastic) refreshes from the equilibria the current model's
+    solver kept: no factorization, the same force to the solver's tolerance.
+    Released once scored, it leaves that shared solver and reduced model alone.
+    A candidate on another FE model (sliding-bottom) does not share it. A model
+    released on its own frees both and still evaluates as before."""
+    from app.core.diagnose import current_model
+    from app.core.effects.model import EffectProblem
+
+    exp = _make(tmp_path_factory, "hyper")
+    current = current_model(exp, ("hyperelastic",), mesh_settings=ID_MESH)
+    params = current.complete({f"E_{k}_kPa": v for k, v in read_truth(exp.path)["moduli_kPa"].items()})
+    current.refresh_hyperelastic(params)
+    solver = current._hyper_model
+    n = solver.n_factorizations
+    kw = dict(base=current, frames=current.frames, nu=current.nu)
+    visco = EffectProblem.from_experiment(exp, effects=("viscoelastic", "hyperelastic"), **kw)
+    visco.share_hyperelastic_solver(current)
+    visco.refresh_hyperelastic(params)
+    assert visco._hyper_model is solver and solver.n_factorizations == n
+    assert visco._hyper.force_N == pytest.approx(current._hyper.force_N, rel=1e-5)
+    visco.release(keep=current)
+    assert current._hyper_model is solver and solver._cache and current.rm._prec is not None
+    slide = EffectProblem.from_experiment(exp, effects=("sliding-bottom", "hyperelastic"), **kw)
+    slide.share_hyperelastic_solver(current)  # another boundary partition: not shared
+    assert slide._hyper_model is None
+    before = current.evaluate(params)["total"]
+    current.release()
+    assert current._hyper_model is None and current.rm._prec is None
+    assert current.evaluate(params)["total"] == before  # released, it evaluates as before
 
 
 @pytest.mark.parametrize("case,displacement_fall", [("hyper", 3.0), ("e-hyper", 2.0)])

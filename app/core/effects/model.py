@@ -267,6 +267,26 @@ class EffectProblem(Problem):
         self._u_lin_ref = u_lin
         self._complete_corrections()
 
+    def share_hyperelastic_solver(self, other: "EffectProblem") -> None:
+        """Use ``other``'s neo-Hookean solver when both are on the same FE model: the
+        equilibria and tangents it kept serve this problem's refreshes as warm
+        starts (a few iterations each) where its own would walk the load path
+        again (a diagnosis candidate of a model that has the effect already)."""
+        if self._hyper_model is None and other.fe is self.fe:
+            self._hyper_model = other._hyper_model
+
+    def release(self, keep: "EffectProblem | None" = None) -> None:
+        """Free the factorizations this problem rebuilds when it needs them: its
+        reduced model's preconditioner (0.3 GB on the demo) and its hyperelastic
+        solver with the tangents kept for warm starts (1.1 GB), except those it
+        shares with ``keep``. The model evaluates as before; a later enrichment
+        refactorizes, and a later hyperelastic refresh walks the load path anew."""
+        if keep is None or keep.rm is not self.rm:
+            self.rm.release()
+        if self._hyper_model is not None and (keep is None or keep._hyper_model is not self._hyper_model):
+            self._hyper_model.free()
+            self._hyper_model = None
+
     def hyperelastic_state(self):
         """The current nonlinear correction (to put back with :meth:`restore_hyperelastic`)."""
         return self._hyper, getattr(self, "_u_lin_ref", None)
