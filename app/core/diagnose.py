@@ -194,6 +194,17 @@ def signature_match(channel: str, tracked: TrackedField, base_px, cand_px, force
     return float(r @ d / den) if den > 0 else 0.0
 
 
+def scoring_reference(base: "Candidate", cand: "Candidate") -> dict:
+    """The misfit a candidate's score and materiality are measured from: the
+    current model's, or for an inclusion the current model refitted on the
+    inclusion's mesh when that fits better. Credited either way only with what
+    it explains beyond both: a better mesh alone is not the inclusion's doing,
+    and an inclusion that makes up for a worse mesh (its region under the
+    probe absorbing the mesh's error) has not explained the measurements."""
+    r = cand.reference
+    return r if r is not None and r["chi2"] < base.misfit["chi2"] else base.misfit
+
+
 def excess(rms: float, floor: float) -> float:
     """The part of an RMS misfit the noise cannot explain: sqrt(max(rms^2 - floor^2, 0))."""
     return float(np.sqrt(max(rms * rms - floor * floor, 0.0)))
@@ -280,8 +291,9 @@ class Candidate:
     problem: EffectProblem | None = field(default=None, repr=False)
     material: bool = False  # removes a material part of the error beyond the noise (see is_material)
     signature: float | None = None  # how well the misfit matches the effect's pattern (signature_match)
-    # the misfit the candidate is scored against when it is not the current model's:
-    # for an inclusion, the current model refitted on the inclusion's mesh (see same_mesh_model)
+    # for an inclusion, the misfit of the current model refitted on the inclusion's mesh
+    # (same_mesh_model); the candidate is scored from it when it is below the current model's
+    # (scoring_reference)
     reference: dict | None = None
     negligible: str = ""  # why the fitted effect is physically no finding, whatever it removes ("" if it is one)
 
@@ -560,7 +572,7 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
                              {}, {}, INFO[eff].n_parameters, -math.inf, f"could not be fitted: {exc}")
         cand.seconds = time.perf_counter() - t1
         if math.isfinite(cand.score):
-            ref = cand.reference or base.misfit
+            ref = scoring_reference(base, cand)
             cand.score = ref["chi2"] - cand.misfit["chi2"] - cand.n_parameters * lnN
             cand.negligible = _negligible(eff, problem, cand)
             cand.material = is_material(ref, cand.misfit) and not cand.negligible
