@@ -140,9 +140,9 @@ def bench_diagnose(repeats: int, candidates) -> list[tuple[str, float, str]]:
                 else:
                     os.environ["ELASTOID_CACHE_DIR"] = saved
         verdicts.append(d.verdict)
-        for c in d.candidates:
-            per.setdefault(c.effect, []).append(c.seconds)
-        del d, c  # its models would count in the next run's peak
+        for effect, seconds in [(cand.effect, cand.seconds) for cand in d.candidates]:
+            per.setdefault(effect, []).append(seconds)
+        del d  # its candidates' models would count in the next run's peak
         gc.collect()
     wall, cpu = statistics.median(times), statistics.median(cpus)
     rows = [("full diagnosis of the demo (median)", wall,

@@ -41,21 +41,17 @@ CASES = {
 }
 
 
-def _elastoid(*args: str) -> None:
-    subprocess.run([sys.executable, "-m", "app.cli", *args], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
-
-
-def _diagnose_peak_gb(*args: str) -> float:
-    """``elastoid diagnose ARGS`` in a child process; its peak resident memory (GB,
-    Linux and macOS report it through wait4; the mesher's own child not counted)."""
+def _elastoid(*args: str) -> float:
+    """``elastoid ARGS`` in a child process; its peak resident memory in GB (from
+    wait4: KB on Linux, bytes on macOS; the mesher's own child not counted)."""
     import os
 
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "diagnose", *args], cwd=ROOT, stdout=subprocess.DEVNULL)
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", *args], cwd=ROOT, stdout=subprocess.DEVNULL)
     _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise subprocess.CalledProcessError(proc.returncode, proc.args)
-    return usage.ru_maxrss / (1e6 if sys.platform.startswith("linux") else 1e9)  # KB on Linux, bytes on macOS
+    return usage.ru_maxrss / (1e6 if sys.platform.startswith("linux") else 1e9)
 
 
 def _errors(params: dict, truth: dict) -> str:
@@ -71,7 +67,7 @@ def run(out: Path, name: str) -> list[str]:
     if not (folder / "experiment.toml").is_file():
         _elastoid("simulate", str(folder), "--overwrite", "--seed", str(seed), *options)
     t = time.perf_counter()
-    peak_gb = _diagnose_peak_gb(str(folder), "--json", str(out / f"{name}.json"), "--quiet")
+    peak_gb = _elastoid("diagnose", str(folder), "--json", str(out / f"{name}.json"), "--quiet")
     seconds = time.perf_counter() - t
     d = json.loads((out / f"{name}.json").read_text())
     truth = read_truth(folder)
