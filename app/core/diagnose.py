@@ -205,6 +205,31 @@ def scoring_reference(base: "Candidate", cand: "Candidate") -> dict:
     return r if r is not None and r["chi2"] < base.misfit["chi2"] else base.misfit
 
 
+def support_warning(d: "Diagnosis", c: "Candidate", parent: int) -> str:
+    """Why the measurements do not support adding candidate ``c`` of diagnosis ``d``
+    to version ``parent``, in a sentence; "" when they do (the verdict always does).
+
+    A model with an effect the data do not show can fit worse than the one it was
+    built on (an effect with nothing to switch it off, e.g. large deformation on a
+    linear specimen), and the next diagnosis then names whatever compensates for it
+    (on the demo with the hyperelastic effect added, viscoelastic at the bound of its
+    relaxation, E_A 35 kPa against 63). So a version that adds such an effect says so."""
+    ref = scoring_reference(d.baseline, c)
+    n = c.n_parameters
+    if c.misfit and c.misfit["chi2"] > ref["chi2"]:
+        return (f"{c.effect} makes the model fit the measurements worse than version {parent} (chi2 "
+                f"{c.misfit['chi2']:,.0f} against {ref['chi2']:,.0f}): the data do not show it; revert to "
+                f"version {parent}")
+    if c.score <= 0:
+        return (f"{c.effect} lowers the misfit by less than its {n} parameter{'s' if n != 1 else ''} cost (score "
+                f"{c.score:+.1f}): the data do not show it, and version {parent} explains them as well; revert to "
+                f"version {parent}")
+    if not c.material:
+        why = c.negligible or f"it removes less than {MATERIAL_FRACTION:.0%} of the error beyond the noise"
+        return f"{c.effect} is not a finding ({why}); version {parent} is the simpler model of these measurements"
+    return ""
+
+
 def excess(rms: float, floor: float) -> float:
     """The part of an RMS misfit the noise cannot explain: sqrt(max(rms^2 - floor^2, 0))."""
     return float(np.sqrt(max(rms * rms - floor * floor, 0.0)))
@@ -716,6 +741,9 @@ class ModelVersion:
     note: str = ""
     inclusion: dict | None = None
     parent: int | None = None
+    # why the measurements do not support the effect this version added ("" when they do;
+    # see support_warning)
+    warning: str = ""
 
     @property
     def label(self) -> str:
@@ -740,9 +768,10 @@ class ModelHistory:
     def current_version(self) -> ModelVersion | None:
         return self.versions[self.current] if self.versions else None
 
-    def with_version(self, effects, parameters, cost, misfit, note: str = "", inclusion=None) -> "ModelHistory":
+    def with_version(self, effects, parameters, cost, misfit, note: str = "", inclusion=None,
+                     warning: str = "") -> "ModelHistory":
         v = ModelVersion(len(self.versions), tuple(effects), dict(parameters), dict(cost), dict(misfit), note,
-                         inclusion, self.current if self.versions else None)
+                         inclusion, self.current if self.versions else None, warning)
         return ModelHistory(self.versions + (v,), len(self.versions))
 
     def reverted(self, index: int) -> "ModelHistory":
@@ -797,6 +826,7 @@ class ModelCheck:
         self.problem: EffectProblem | None = None
         self.tracked: TrackedField | None = None
         self.last_diagnosis: Diagnosis | None = None
+        self._diagnosed: int | None = None  # the version the last diagnosis was made for
         self._problems: dict[int, EffectProblem] = {}
 
     @property
@@ -814,9 +844,9 @@ class ModelCheck:
             self.tracked = track(problem, res.parameters)
         return self._add_version(problem, res.parameters, res.cost, note or "identified", inclusion)
 
-    def _add_version(self, problem, params, cost, note, inclusion) -> ModelVersion:
+    def _add_version(self, problem, params, cost, note, inclusion, warning: str = "") -> ModelVersion:
         mis = _misfit(Likelihood(problem, self.tracked, noise_model(problem, self.tracked)), params)
-        self.history = self.history.with_version(problem.effects, params, cost, mis, note, inclusion)
+        self.history = self.history.with_version(problem.effects, params, cost, mis, note, inclusion, warning)
         self._switch_to(problem)
         self._problems[self.history.current] = problem
         return self.history.current_version
@@ -834,6 +864,7 @@ class ModelCheck:
         self.last_diagnosis = diagnose(self.exp, effects=v.effects, candidates=candidates, problem=self.problem,
                                        start=v.parameters, mesh_settings=self.mesh_settings, inclusion=v.inclusion,
                                        tracked=self.tracked, progress=progress, cancel=cancel)
+        self._diagnosed = self.history.current
         return self.last_diagnosis
 
     def add(self, effect: str | None = None) -> ModelVersion:
@@ -842,13 +873,19 @@ class ModelCheck:
         d = self.last_diagnosis
         if d is None:
             raise ElastoidError("diagnose first")
+        if self._diagnosed != self.history.current:
+            raise ElastoidError(f"the last diagnosis was made for version {self._diagnosed}: diagnose the current "
+                                f"version ({self.history.current}) first")
         effect = effect or d.verdict
         if effect == "none":
             raise ElastoidError("the diagnosis found no effect to add")
+        if effect not in [c.effect for c in d.candidates]:
+            raise ElastoidError(f"{effect} was not tried in the last diagnosis")
         c = d.candidate(effect)
         if c.problem is None:
             raise ElastoidError(f"{effect} could not be fitted")
-        return self._add_version(c.problem, c.parameters, c.cost, f"added {effect}", c.inclusion)
+        return self._add_version(c.problem, c.parameters, c.cost, f"added {effect}", c.inclusion,
+                                 support_warning(d, c, self.history.current))
 
     def revert(self, index: int) -> ModelVersion:
         self.history = self.history.reverted(index)

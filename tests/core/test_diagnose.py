@@ -29,6 +29,7 @@ import pytest
 
 from app.core.diagnose import ModelCheck, ModelHistory, diagnose
 from app.core.effects import EFFECT_IDS
+from app.core.errors import ElastoidError
 from app.core.experiment import read_experiment
 from app.core.simulate import read_truth
 from tests.core import synthetic
@@ -187,8 +188,18 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     assert errs["label"] == ["baseline", "+ viscoelastic"]
     assert errs["force_rms_N"][1] < errs["force_rms_N"][0] / 3
     assert mc.history.compare(0, 1)["added"] == ["viscoelastic"]
+    assert v1.warning == ""  # the verdict is supported
     mc.revert(0)
     assert mc.effects == () and len(mc.history) == 2
+    # an effect the diagnosis did not support can be added, and its version says so
+    assert d.candidate("probe-slip").score < 0
+    v2 = mc.add("probe-slip")
+    assert v2.parent == 0 and v2.warning and "revert to version 0" in v2.warning
+    assert mc.history.versions[2].warning == v2.warning
+    assert ModelHistory.from_json_dict(mc.history.to_json_dict()) == mc.history
+    mc.revert(1)
+    with pytest.raises(ElastoidError, match="diagnose the current version"):
+        mc.add("viscoelastic")  # the diagnosis was made for version 0
 
 
 def test_a_candidate_of_a_hyperelastic_model_refreshes_warm_and_release_keeps_what_is_shared(tmp_path_factory):

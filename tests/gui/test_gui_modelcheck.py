@@ -169,6 +169,18 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     assert not panel.identify_boxes["viscoelastic"].isChecked()
     t, f0 = panel.force_curves["time"][1].getData()
     assert np.sqrt(np.mean((f0 - log.force_N) ** 2)) == pytest.approx(h.versions[0].misfit["force_rms_N"], rel=1e-6)
+    assert "\u26a0" not in panel.version_label.text()
+
+    # add what the diagnosis did not support (probe-slip, scored below zero): the version says so
+    panel.tabs.setCurrentIndex(1)
+    panel.diagnosis_table.selectRow(1)
+    _click_and_wait(qtbot, panel, panel.add_selected_button, 60)
+    h = panel.model.history
+    assert len(h) == 3 and h.current == 2 and h.versions[2].parent == 0 and h.versions[2].warning
+    assert "\u26a0" in panel.version_label.text() and "revert to version 0" in panel.version_label.text()
+    assert panel.history_table.item(2, 6).text().startswith("\u26a0")
+    assert panel.history_table.item(2, 6).toolTip() == h.versions[2].warning
+    assert "Warning: probe-slip" in panel.state.text()
     assert not win.error_boxes
     text = win.log_panel.text.toPlainText()
     assert "model check: trying viscoelastic" in text and "model check: added viscoelastic" in text

@@ -15,6 +15,7 @@ rows the panel draws (also Qt-free, so they are tested without a window).
 from __future__ import annotations
 
 import math
+import textwrap
 import threading
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -164,8 +165,10 @@ class ModelCheckModel:
             v = check.add(effect)
             progress("comparing the model with the measurements")
             cmp = check.compare()
-            return (check, inputs, Snapshot(check.history, cmp, d, dv, "add",
-                                                 f"added {effect}: version {v.index}, {_errors_text(v.misfit)}"))
+            message = f"added {effect}: version {v.index}, {_errors_text(v.misfit)}"
+            if v.warning:
+                message += f". Warning: {v.warning}"
+            return (check, inputs, Snapshot(check.history, cmp, d, dv, "add", message))
 
         return work
 
@@ -278,7 +281,7 @@ def history_rows(history) -> list[dict]:
                      "force_rms_N": v.misfit.get("force_rms_N"),
                      "displacement_rms_px": v.misfit.get("displacement_rms_px"),
                      "chi2": v.misfit.get("chi2"), "note": v.note, "current": v.index == history.current,
-                     "parent": v.parent})
+                     "parent": v.parent, "warning": v.warning})
     return rows
 
 
@@ -300,6 +303,9 @@ def compare_text(history, i: int, j: int) -> str:
     for k, (x, y, r) in c["errors"].items():
         ratio = f"x{r:.3g}" if r is not None and math.isfinite(r) else "-"
         lines.append(f"  {names.get(k, k):15s} {_num(x):>7s} -> {_num(y):>7s} {ratio}")
+    for v in (a, b):
+        if v.warning:
+            lines.append(textwrap.fill(f"warning on version {v.index}: {v.warning}", 72, subsequent_indent="  "))
     return "\n".join(lines)
 
 

@@ -16,6 +16,7 @@ the window, report their progress lines here and in the log, and stop at Cancel.
 
 from __future__ import annotations
 
+import html
 import logging
 import math
 import time
@@ -643,10 +644,12 @@ class ModelCheckPanel(Panel):
         if v is None:
             self.version_label.setText("No model yet.")
             return
+        warning = (f"<br><span style='color:#b26a00'>\u26a0 {html.escape(v.warning[:1].upper() + v.warning[1:])}."
+                   f"</span>" if v.warning else "")
         self.version_label.setText(f"<b>Current: version {v.index}, {v.label}</b><br>"
-                                   f"{parameters_text(v.parameters, v.inclusion)}<br>"
+                                   f"{html.escape(parameters_text(v.parameters, v.inclusion))}<br>"
                                    f"force misfit {v.misfit.get('force_rms_N', math.nan):.4f} N RMS, displacement "
-                                   f"misfit {v.misfit.get('displacement_rms_px', math.nan):.3f} px RMS")
+                                   f"misfit {v.misfit.get('displacement_rms_px', math.nan):.3f} px RMS{warning}")
         self._updating = True
         try:
             for e, cb in self.identify_boxes.items():
@@ -833,11 +836,15 @@ class ModelCheckPanel(Panel):
         self.history_table.setRowCount(len(rows))
         for i, r in enumerate(rows):
             mark = "\u25b6 " if r["current"] else ""
+            note = f"\u26a0 {r['note']}: not supported" if r["warning"] else r["note"]
             cells = [f"{mark}{r['index']}", r["label"], r["parameters"], _fmt(r["force_rms_N"], 4),
-                     _fmt(r["displacement_rms_px"], 3), _fmt(r["chi2"], 1), r["note"]]
+                     _fmt(r["displacement_rms_px"], 3), _fmt(r["chi2"], 1), note]
             for col, text in enumerate(cells):
-                it = _item(text, bold=r["current"],
-                           tip="the current version" if r["current"] and col == 0 else "")
+                tip = ("the current version" if r["current"] and col == 0
+                       else r["warning"] if r["warning"] and col in (1, 6) else "")
+                it = _item(text, bold=r["current"], tip=tip)
+                if r["warning"] and col == 6:
+                    it.setForeground(QColor("#b26a00"))
                 if col in (3, 4, 5):
                     it.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
                 self.history_table.setItem(i, col, it)
