@@ -200,6 +200,12 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     mc.revert(1)
     with pytest.raises(ElastoidError, match="diagnose the current version"):
         mc.add("viscoelastic")  # the diagnosis was made for version 0
+    # identified with effects of the user's choice: warned when it fits worse than its parent
+    mc.revert(0)
+    v3 = mc.identify(("probe-slip",))
+    assert v3.parent == 0 and "worse than version 0" in v3.warning, v3.misfit
+    mc.revert(0)
+    assert mc.identify(("viscoelastic",)).warning == ""
 
 
 def test_a_candidate_of_a_hyperelastic_model_refreshes_warm_and_release_keeps_what_is_shared(tmp_path_factory):
