@@ -8,7 +8,7 @@ phantom (90 x 90 x 96 mm, inclusion A of 63 kPa in B of 18 kPa, pressed
 the scatterer simulator, noisy force) with one effect hidden in the truth, and
 ``elastoid diagnose DIR/CASE --json DIR/CASE.json`` diagnoses it with every
 candidate. An experiment folder already in DIR is reused (the neo-Hookean
-truth takes minutes to simulate). Prints a table: the verdict, where the
+truth takes minutes to simulate). Prints a table: the verdict (and its rival in a near tie), where the
 hidden effect ranked and scored, the moduli with it and with the baseline,
 how much the error beyond the noise falls with it in the effect's channel
 (for the inclusion, against the model on the inclusion's mesh), and the
@@ -74,7 +74,8 @@ def run(out: Path, name: str) -> list[str]:
     hidden_regions = {r["name"] for r in truth.get("hidden_regions", [])}
     moduli = {k: v for k, v in truth["moduli_kPa"].items() if k not in hidden_regions}  # the described ones
     base = d["baseline"]
-    row = [name, hidden, d["verdict"], "", "", "", _errors(base["parameters"], moduli), f"{seconds:.0f}",
+    verdict = d["verdict"] + (f" (near tie: {d['rival']})" if d.get("rival") else "")
+    row = [name, hidden, verdict, "", "", "", _errors(base["parameters"], moduli), f"{seconds:.0f}",
            f"{peak_gb:.1f}"]
     ids = [c["effect"] for c in d["candidates"]]
     if hidden in ids:

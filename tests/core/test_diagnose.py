@@ -346,6 +346,31 @@ def test_an_inclusion_is_credited_only_with_what_it_explains_beyond_both_referen
     assert scoring_reference(base, cand("sliding-bottom", 500.0)) is base.misfit
 
 
+def test_a_runner_up_that_is_a_finding_too_and_scores_nearly_as_well_is_a_near_tie():
+    """The scores of the paper-size sliding-bottom case with three frames (the
+    inclusion +2,873, sliding-bottom +2,783): the verdict stands, the diagnosis
+    names its rival and says what would separate them. A runner-up that is not a
+    finding, or scores well below the verdict, is no rival."""
+    from app.core.diagnose import NEAR_TIE, Candidate, Diagnosis, NoiseModel
+
+    def diag(*cands):
+        cs = [Candidate(e, (e,), {}, {}, {"chi2": 1.0}, 1, score, "", material=mat) for e, score, mat in cands]
+        verdict = next((c.effect for c in cs if c.score > 0 and c.material), "none")
+        base = Candidate("", (), {}, {}, {"chi2": 1.0, "force_rms_N": 0.02, "displacement_rms_px": 0.5})
+        return Diagnosis("x", base, cs, verdict, NoiseModel(0.02, 10, 0.1, 10), 1.0)
+
+    d = diag(("inclusion", 2873.0, True), ("sliding-bottom", 2783.0, True), ("compressibility", 2268.0, False))
+    assert d.verdict == "inclusion" and d.rival == "sliding-bottom"
+    assert "+2,783 against +2,873" in d.tie_advice() and "specimen slides on the table" in d.tie_advice()
+    assert d.to_json_dict()["rival"] == "sliding-bottom" and d.lines()[-1].startswith("near tie: sliding-bottom")
+    assert diag(("inclusion", 2873.0, True), ("sliding-bottom", 2783.0, False)).rival == ""  # not a finding
+    assert diag(("inclusion", 2873.0, True), ("sliding-bottom", 0.75 * 2873.0, True)).rival == ""
+    assert NEAR_TIE > 0.75
+    d = diag(("viscoelastic", 217807.0, True), ("compressibility", 326.0, True))
+    assert d.rival == "" and d.tie_advice() == "" and d.to_json_dict()["rival"] is None
+    assert diag(("compressibility", 100.0, False)).rival == ""  # verdict none
+
+
 def test_history_is_immutable_and_round_trips():
     h = ModelHistory()
     h1 = h.with_version((), {"E_B_kPa": 10.0}, {"total": -1.0}, {"force_rms_N": 0.3, "displacement_rms_px": 1.0})

@@ -249,3 +249,23 @@ def test_history_text_and_rows():
     assert parameters_text(h.versions[1].parameters) == "B 12.00, A 36.00 kPa; g1 0.3, tau1_s 2.00"
     text = compare_text(h, 0, 1)
     assert "added: viscoelastic; removed: nothing" in text and "x0.1" in text and "+20.0%" in text
+
+
+def test_a_near_tie_is_shown_under_the_verdict(window, qtbot):
+    """The scores of the paper-size sliding-bottom case with three frames: the
+    verdict line names the rival and what would separate the two."""
+    from app.core.diagnose import Candidate, Diagnosis, ModelHistory, NoiseModel
+    from app.gui.models.modelcheck import Snapshot
+
+    misfit = {"chi2": 5000.0, "force_rms_N": 0.02, "displacement_rms_px": 1.1}
+    h = ModelHistory().with_version((), {"E_B_kPa": 17.0, "E_A_kPa": 52.0}, {"nmi": 1.1}, misfit)
+    cands = [Candidate("inclusion", ("inclusion",), {"E_B_kPa": 16.2}, {}, misfit, 4, 2873.0, "a region", material=True),
+             Candidate("sliding-bottom", ("sliding-bottom",), {"E_B_kPa": 17.7}, {}, misfit, 1, 2783.0, "slides",
+                       material=True)]
+    d = Diagnosis("x", Candidate("", (), {}, {}, misfit), cands, "inclusion", NoiseModel(0.02, 10, 0.1, 10), 88.0)
+    panel = window.modelcheck_panel
+    snap = panel.model.apply((None, None, Snapshot(h, None, d, 0, "diagnose", "diagnosis: verdict inclusion")))
+    panel._show(snap)
+    text = panel.verdict_label.text()
+    assert "Verdict: inclusion" in text and "Near tie: sliding-bottom scores nearly as well" in text
+    assert "+2,783 against +2,873" in text and "about 2% apart" in text

@@ -790,7 +790,10 @@ class ModelCheckPanel(Panel):
         else:
             c = d.candidate(d.verdict)
             ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
-            self.verdict_label.setText(f"<b>Verdict: {d.verdict}</b> ({INFO[d.verdict].title}). {ev}.")
+            tie = d.tie_advice()
+            tie = (f"<br><span style='color:#b26a00'>\u26a0 Near tie: {html.escape(tie)}.</span>" if tie else "")
+            self.verdict_label.setText(f"<b>Verdict: {d.verdict}</b> ({INFO[d.verdict].title}). "
+                                       f"{html.escape(ev)}.{tie}")
         b = d.baseline
         self.diagnosis_current.setText(
             f"Diagnosed version {snap.diagnosed_version} ({', '.join(b.effects) or 'baseline'}) in {d.seconds:.0f} s: "
