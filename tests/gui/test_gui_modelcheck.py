@@ -259,13 +259,16 @@ def test_a_near_tie_is_shown_under_the_verdict(window, qtbot):
 
     misfit = {"chi2": 5000.0, "force_rms_N": 0.02, "displacement_rms_px": 1.1}
     h = ModelHistory().with_version((), {"E_B_kPa": 17.0, "E_A_kPa": 52.0}, {"nmi": 1.1}, misfit)
-    cands = [Candidate("inclusion", ("inclusion",), {"E_B_kPa": 16.2}, {}, misfit, 4, 2873.0, "a region", material=True),
+    cands = [Candidate("inclusion", ("inclusion",), {"E_B_kPa": 16.2}, {}, misfit, 4, 2873.0, "a region", material=True,
+                       signature=0.924),
              Candidate("sliding-bottom", ("sliding-bottom",), {"E_B_kPa": 17.7}, {}, misfit, 1, 2783.0, "slides",
-                       material=True)]
-    d = Diagnosis("x", Candidate("", (), {}, {}, misfit), cands, "inclusion", NoiseModel(0.02, 10, 0.1, 10), 88.0)
+                       material=True, signature=0.965)]
+    d = Diagnosis("x", Candidate("", (), {}, {}, misfit), cands, "sliding-bottom", NoiseModel(0.02, 10, 0.1, 10),
+                  88.0)
     panel = window.modelcheck_panel
-    snap = panel.model.apply((None, None, Snapshot(h, None, d, 0, "diagnose", "diagnosis: verdict inclusion")))
+    snap = panel.model.apply((None, None, Snapshot(h, None, d, 0, "diagnose", "diagnosis: verdict sliding-bottom")))
     panel._show(snap)
     text = panel.verdict_label.text()
-    assert "Verdict: inclusion" in text and "Near tie: sliding-bottom scores nearly as well" in text
-    assert "+2,783 against +2,873" in text and "about 2% apart" in text
+    assert "Verdict: sliding-bottom" in text and "Near tie: inclusion scores slightly better" in text
+    assert "+2,873 against +2,783" in text and "about 2% apart" in text
+    assert panel.verdict_row() == 1  # the table stays ranked by score; the verdict's row is marked

@@ -29,7 +29,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QGridLay
                                QHeaderView, QLabel, QPlainTextEdit, QProgressBar, QPushButton, QSplitter,
                                QTableWidget, QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
-from app.core.diagnose import MATERIAL_FRACTION
+from app.core.diagnose import MATERIAL_FRACTION, NEAR_TIE
 from app.core.effects import EFFECT_IDS, INFO
 from app.core.effects.compressibility import NU_NEGLIGIBLE
 
@@ -332,7 +332,9 @@ class ModelCheckPanel(Panel):
                            "the noise model, less what the effect's k parameters cost (BIC). The verdict is the best "
                            "positive score among the effects that also remove at least "
                            f"{MATERIAL_FRACTION:.0%} of the error beyond the noise (and move a Poisson's ratio at "
-                           f"least {NU_NEGLIGIBLE} from the model's), else none."))
+                           f"least {NU_NEGLIGIBLE} from the model's), else none. Among those scoring at least "
+                           f"{NEAR_TIE:.0%} of the best (a near tie), the verdict is the one whose pattern the "
+                           "misfit has most closely."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
