@@ -147,7 +147,12 @@ def check_resources(ctx: _Context) -> str:
         raise RuntimeError(f"demo frame 0 is blank or malformed: shape {img.shape}")
     if len(exp.force_log) < 10:
         raise RuntimeError(f"demo force log has {len(exp.force_log)} samples")
-    return f"demo: {len(exp.frames)} frames {img.shape[1]}x{img.shape[0]} px, {len(exp.force_log)} force samples"
+    from app.core.mesh import shipped_mesh_path
+
+    if shipped_mesh_path(exp) is None:
+        raise RuntimeError("the demo's mesh is not shipped (resources/meshes): the demo would be meshed again")
+    return (f"demo: {len(exp.frames)} frames {img.shape[1]}x{img.shape[0]} px, {len(exp.force_log)} force samples, "
+            "its mesh shipped")
 
 
 def check_mesh(ctx: _Context) -> str:

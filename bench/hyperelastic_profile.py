@@ -4,8 +4,7 @@
 
 Times the solver's pieces (factorizations, tangent assemblies, back-substitutions,
 residuals) during one cold solve of the demo (moduli 18 and 63 kPa, 4 load steps
-to 14.8 mm) and prints a table. Use ELASTOID_CACHE_DIR with a copy of
-tests/data/meshes for the committed demo mesh.
+to 14.8 mm) and prints a table, on the demo's mesh shipped in resources/meshes.
 """
 
 from __future__ import annotations

@@ -12,9 +12,9 @@ truth takes minutes to simulate). Prints a table: the verdict (and its rival in 
 hidden effect ranked and scored, the moduli with it and with the baseline,
 how much the error beyond the noise falls with it in the effect's channel
 (for the inclusion, against the model on the inclusion's mesh), and the
-diagnosis's wall time and peak resident memory. Set ELASTOID_CACHE_DIR to a
-copy of tests/data/meshes to start from the demo's committed identification
-mesh.
+diagnosis's wall time and peak resident memory. The identification mesh is
+the demo's (the same phantom), shipped in resources/meshes; the truth meshes
+and the located inclusions' are made anew.
 """
 
 from __future__ import annotations

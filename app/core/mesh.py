@@ -14,6 +14,7 @@ import hashlib
 import json
 import multiprocessing as mp
 import os
+import shutil
 import sys
 import threading
 from dataclasses import asdict, dataclass
@@ -269,6 +270,22 @@ def cache_dir() -> Path:
     return d
 
 
+def _copy_bundled(key: str, path: Path) -> bool:
+    """Put the mesh shipped with the application for this key (resources/meshes:
+    the demo's) into the cache, if there is one. The demo then opens without
+    meshing (about 20 s), and, fTetWild not being deterministic, gives the same
+    numbers on every machine."""
+    from app.resources import resource_path
+
+    src = resource_path("meshes", f"{key}.npz")
+    if not src.is_file():
+        return False
+    tmp = path.with_suffix(".tmp.npz")
+    shutil.copyfile(src, tmp)
+    os.replace(tmp, path)
+    return True
+
+
 def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
     """Run fTetWild on ``args`` in a child process; (V, T), or MeshingError/Cancelled."""
     import queue as _q
@@ -312,11 +329,12 @@ def build_mesh(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings: Me
     key = _mesh_key(size_mm, probe_rect_mm, regions, settings)
     path = cache_dir() / f"{key}.npz"
     names = tuple(r.name for r in regions)
+    bundled = use_cache and not path.is_file() and _copy_bundled(key, path)
     if use_cache and path.is_file():
         try:
             d = np.load(path)
             if progress:
-                progress("mesh loaded from cache")
+                progress("mesh loaded from the copy shipped with ElastoID" if bundled else "mesh loaded from cache")
             # meshes cached before the outline was made conforming get it here (idempotent)
             V, T, labels = conform_probe_outline(d["points"], d["tets"], d["labels"], size_mm, probe_rect_mm)
             return TetMesh(V, T, labels, names, size_mm, tuple(probe_rect_mm))
@@ -558,6 +576,18 @@ def auto_settings(size_mm, probe_rect_mm, regions: tuple[Region, ...]) -> MeshSe
     x0, x1, y0, y1 = probe_rect_mm
     probe = min(2.5, min(x1 - x0, y1 - y0) / 5.0, edge)
     return MeshSettings(edge_mm=round(edge, 3), probe_edge_mm=round(probe, 3))
+
+
+def shipped_mesh_path(exp, settings: MeshSettings | None = None) -> Path | None:
+    """The mesh shipped with the application for this experiment's specimen (the
+    demo's, in resources/meshes), or None."""
+    from app.resources import resource_path
+
+    rect = exp.probe.face_rect_mm()
+    if settings is None:
+        settings = auto_settings(exp.specimen.size_mm, rect, exp.specimen.regions)
+    path = resource_path("meshes", f"{_mesh_key(exp.specimen.size_mm, rect, exp.specimen.regions, settings)}.npz")
+    return path if path.is_file() else None
 
 
 def specimen_mesh(exp, settings: MeshSettings | None = None, **kw) -> TetMesh:

@@ -178,3 +178,28 @@ def test_the_located_inclusions_looser_envelope_keeps_the_geometry():
     assert q.min_dihedral_deg > 3.0
     x0, x1, y0, y1 = PROBE
     assert probe_face_area_mm2(m) == pytest.approx((x1 - x0) * (y1 - y0), rel=1e-6)
+
+
+def test_the_demo_opens_with_the_mesh_shipped_with_it(tmp_path, monkeypatch):
+    """resources/meshes holds the demo's mesh under its current cache key (a
+    change of MESH_VERSION or of the automatic settings orphans it: regenerate it
+    then). With an empty cache the demo's mesh is that copy, not a new fTetWild run."""
+    import app.core.mesh as M
+    from app.core.experiment import read_experiment
+    from app.core.mesh import shipped_mesh_path, specimen_mesh
+    from app.resources import resource_path
+
+    monkeypatch.setenv("ELASTOID_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(M, "_tetwild", lambda *a, **k: pytest.fail("the demo was meshed again"))
+    exp = read_experiment(resource_path("demo"))
+    said = []
+    mesh = specimen_mesh(exp, progress=said.append)
+    assert said == ["mesh loaded from the copy shipped with ElastoID"]
+    bundled = [shipped_mesh_path(exp)]
+    assert bundled[0] is not None and [p.name for p in tmp_path.glob("meshes/*.npz")] == [bundled[0].name]
+    d = np.load(bundled[0])  # its probe outline is conformed on loading, as for any cached mesh
+    V, T, _ = conform_probe_outline(d["points"], d["tets"], d["labels"], mesh.size_mm, mesh.probe_rect_mm)
+    assert np.array_equal(mesh.points_mm, V) and np.array_equal(mesh.tets, T) and mesh.region_names == ("B", "A")
+    said.clear()
+    specimen_mesh(exp, progress=said.append)  # now from the cache
+    assert said == ["mesh loaded from cache"]
