@@ -860,12 +860,6 @@ class ModelHistory:
                          inclusion, self.current if self.versions else None, warning)
         return ModelHistory(self.versions + (v,), len(self.versions))
 
-    def with_warning(self, index: int, warning: str) -> "ModelHistory":
-        """The same history with version ``index`` warned (see ModelVersion.warning)."""
-        vs = list(self.versions)
-        vs[index] = replace(vs[index], warning=warning)
-        return ModelHistory(tuple(vs), self.current)
-
     def reverted(self, index: int) -> "ModelHistory":
         """The same versions with ``index`` current again (later ones are kept to compare)."""
         if not 0 <= index < len(self.versions):
@@ -934,21 +928,21 @@ class ModelCheck:
         res = identify_with_effects(problem, starts_kPa, cancel=cancel)
         if self.tracked is None:
             self.tracked = track(problem, res.parameters)
-        parent = self.history.current_version
-        v = self._add_version(problem, res.parameters, res.cost, note or "identified", inclusion)
-        added = [e for e in v.effects if parent is not None and e not in parent.effects]
-        if added and set(parent.effects) <= set(v.effects) and v.misfit["chi2"] > parent.misfit["chi2"]:
-            # more effects, a worse fit (both identified the same way): the data do not show them
-            warning = (f"{', '.join(added)} make{'s' if len(added) == 1 else ''} the model fit the measurements "
-                       f"worse than version {parent.index} (chi2 {v.misfit['chi2']:,.0f} against "
-                       f"{parent.misfit['chi2']:,.0f}): the data do not show "
-                       f"{'it' if len(added) == 1 else 'them'}; revert to version {parent.index}")
-            self.history = self.history.with_warning(v.index, warning)
-            v = self.history.current_version
-        return v
+        return self._add_version(problem, res.parameters, res.cost, note or "identified", inclusion)
 
-    def _add_version(self, problem, params, cost, note, inclusion, warning: str = "") -> ModelVersion:
+    def _add_version(self, problem, params, cost, note, inclusion, warning: str | None = None) -> ModelVersion:
+        """A new current version; ``warning`` None (an identification): warned when it
+        adds effects to the current version and fits worse than it (both identified
+        the same way)."""
         mis = _misfit(Likelihood(problem, self.tracked, noise_model(problem, self.tracked)), params)
+        if warning is None:
+            warning, parent = "", self.history.current_version
+            added = [e for e in problem.effects if parent is not None and e not in parent.effects]
+            if added and set(parent.effects) <= set(problem.effects) and mis["chi2"] > parent.misfit["chi2"]:
+                warning = (f"{', '.join(added)} make{'s' if len(added) == 1 else ''} the model fit the "
+                           f"measurements worse than version {parent.index} (chi2 {mis['chi2']:,.0f} against "
+                           f"{parent.misfit['chi2']:,.0f}): the data do not show "
+                           f"{'it' if len(added) == 1 else 'them'}; revert to version {parent.index}")
         self.history = self.history.with_version(problem.effects, params, cost, mis, note, inclusion, warning)
         self._switch_to(problem)
         self._problems[self.history.current] = problem

@@ -270,15 +270,21 @@ def cache_dir() -> Path:
     return d
 
 
+def _shipped(key: str) -> Path | None:
+    """The mesh shipped with the application under this cache key, or None."""
+    from app.resources import resource_path
+
+    path = resource_path("meshes", f"{key}.npz")
+    return path if path.is_file() else None
+
+
 def _copy_bundled(key: str, path: Path) -> bool:
     """Put the mesh shipped with the application for this key (resources/meshes:
     the demo's) into the cache, if there is one. The demo then opens without
     meshing (about 20 s), and, fTetWild not being deterministic, gives the same
     numbers on every machine."""
-    from app.resources import resource_path
-
-    src = resource_path("meshes", f"{key}.npz")
-    if not src.is_file():
+    src = _shipped(key)
+    if src is None:
         return False
     tmp = path.with_suffix(".tmp.npz")
     shutil.copyfile(src, tmp)
@@ -578,21 +584,20 @@ def auto_settings(size_mm, probe_rect_mm, regions: tuple[Region, ...]) -> MeshSe
     return MeshSettings(edge_mm=round(edge, 3), probe_edge_mm=round(probe, 3))
 
 
-def shipped_mesh_path(exp, settings: MeshSettings | None = None) -> Path | None:
-    """The mesh shipped with the application for this experiment's specimen (the
-    demo's, in resources/meshes), or None."""
-    from app.resources import resource_path
-
+def _specimen_inputs(exp, settings: MeshSettings | None):
+    """build_mesh's geometric inputs for an experiment (automatic sizes by default)."""
     rect = exp.probe.face_rect_mm()
     if settings is None:
         settings = auto_settings(exp.specimen.size_mm, rect, exp.specimen.regions)
-    path = resource_path("meshes", f"{_mesh_key(exp.specimen.size_mm, rect, exp.specimen.regions, settings)}.npz")
-    return path if path.is_file() else None
+    return exp.specimen.size_mm, rect, exp.specimen.regions, settings
+
+
+def shipped_mesh_path(exp, settings: MeshSettings | None = None) -> Path | None:
+    """The mesh shipped with the application for this experiment's specimen (the
+    demo's, in resources/meshes), or None."""
+    return _shipped(_mesh_key(*_specimen_inputs(exp, settings)))
 
 
 def specimen_mesh(exp, settings: MeshSettings | None = None, **kw) -> TetMesh:
     """Mesh of an experiment's specimen under its probe (automatic sizes by default)."""
-    rect = exp.probe.face_rect_mm()
-    if settings is None:
-        settings = auto_settings(exp.specimen.size_mm, rect, exp.specimen.regions)
-    return build_mesh(exp.specimen.size_mm, rect, exp.specimen.regions, settings, **kw)
+    return build_mesh(*_specimen_inputs(exp, settings), **kw)
