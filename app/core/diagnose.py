@@ -373,9 +373,48 @@ def near_tie(ranked) -> list:
     return [c for c in found if c.score >= NEAR_TIE * found[0].score] if found else []
 
 
-def choose_verdict(ranked) -> str:
+# effects a near tie between two of which is settled by fitting both together
+# (TieBreak); the inclusion needs a mesh of its own and the hyperelastic model a
+# nonlinear solve per evaluation, so their ties go to the pattern match
+JOINT_EFFECTS = ("viscoelastic", "sliding-bottom", "probe-slip", "compressibility")
+
+
+@dataclass
+class TieBreak:
+    """The two best findings of a near tie fitted together (``joint``). An effect
+    *yields* when, with the other one in the model, it no longer earns its
+    parameters or its fitted value is no finding (``negligible``): the data need
+    the other. ``yields`` maps each effect to the reason it yields ("" if it
+    does not); the verdict is the other effect when exactly one yields.
+
+    Where this came from: at paper size with probe slip hidden (seed 103),
+    compressibility (Poisson's ratio 0.468) outscored probe-slip, +1,569 against
+    +1,415, with the pattern match a tie (79% against 78%). Fitted together, the
+    Poisson's ratio came back to 0.480, within the 0.02 the mesh error alone moves
+    it (compressibility.NU_NEGLIGIBLE); with compressibility in the model, the
+    slip still lowered chi2 by 78."""
+
+    effects: tuple  # the two tied effects, the better score first
+    joint: Candidate
+    yields: dict  # effect -> why it yields to the other, or ""
+
+    @property
+    def winner(self) -> str:
+        """The effect the data need given the other, or "" when the joint fit does not tell."""
+        y = [e for e in self.effects if self.yields[e]]
+        return next(e for e in self.effects if e not in y) if len(y) == 1 else ""
+
+    def to_json_dict(self) -> dict:
+        return {"effects": list(self.effects), "parameters": self.joint.parameters,
+                "chi2": round(float(self.joint.misfit["chi2"]), 3),
+                "yields": {e: (r or None) for e, r in self.yields.items()}, "verdict": self.winner or None}
+
+
+def choose_verdict(ranked, tie_break: TieBreak | None = None) -> str:
     """The verdict among candidates ranked by score: the best-scoring finding, or
-    in a near tie the finding whose pattern the misfit has most closely.
+    in a near tie the one the joint fit of the two best says the data need
+    (``tie_break``, see TieBreak), else the finding whose pattern the misfit has
+    most closely.
 
     Scores that close do not decide: the noise model counts tracked blocks as
     independent, and the model's own error (the mesh, the tracking of frames far
@@ -391,6 +430,8 @@ def choose_verdict(ranked) -> str:
     tie = near_tie(ranked)
     if not tie:
         return "none"
+    if tie_break is not None and tie_break.winner:
+        return tie_break.winner
     best = tie[0]
     for c in tie[1:]:
         if (c.signature or 0.0) > (best.signature or 0.0) + SIGNATURE_MARGIN:
@@ -408,6 +449,7 @@ class Diagnosis:
     seconds: float
     comparison: Comparison | None = field(default=None, repr=False)
     tracked: TrackedField | None = field(default=None, repr=False)
+    tie_break: TieBreak | None = None  # the near tie's two best fitted together, if they were
 
     def candidate(self, effect: str) -> Candidate:
         return next(c for c in self.candidates if c.effect == effect)
@@ -428,7 +470,10 @@ class Diagnosis:
         v, c = self.candidate(self.verdict), self.candidate(r)
         how = "nearly as well" if c.score <= v.score else "slightly better"
         why = ""
-        if c.score > v.score:
+        tb = self.tie_break
+        if tb is not None and tb.winner == v.effect:
+            why = f"; fitted together, {tb.yields[r]}, so the verdict goes to {v.effect}"
+        elif c.score > v.score:
             why = (f"; the verdict goes to {v.effect}, whose pattern the misfit has more closely "
                    f"({max(v.signature or 0, 0):.0%} against {max(c.signature or 0, 0):.0%})")
         return (f"{r} scores {how} ({c.score:+,.0f} against {v.score:+,.0f}){why}: these measurements barely "
@@ -449,6 +494,7 @@ class Diagnosis:
                                for c in self.candidates],
                 "verdict": self.verdict,
                 "rival": self.rival or None,
+                "tie_break": None if self.tie_break is None else self.tie_break.to_json_dict(),
                 "noise_model": self.noise.describe(),
                 "seconds": round(self.seconds, 2)}
 
@@ -675,8 +721,64 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
             cand.problem.release(keep=problem)
         out.append(cand)
     out.sort(key=lambda c: -c.score)
-    verdict = choose_verdict(out)
-    return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked)
+    tie_break = _tie_break(out, problem, tracked, noise, max_evaluations, say, cancel)
+    verdict = choose_verdict(out, tie_break)
+    return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked,
+                     tie_break)
+
+
+def _tie_break(ranked, problem: EffectProblem, tracked, noise, max_evaluations, say, cancel) -> TieBreak | None:
+    """The two best findings of a near tie fitted together (see TieBreak), when both
+    are JOINT_EFFECTS; None else, or when the joint model cannot be fitted."""
+    tie = near_tie(ranked)
+    if len(tie) < 2 or not all(c.effect in JOINT_EFFECTS for c in tie[:2]):
+        return None
+    a, b = tie[:2]
+    if cancel is not None and cancel.is_set():
+        raise Cancelled("diagnosis cancelled")
+    say(f"{a.effect} and {b.effect} explain the misfit nearly equally well: fitting them together")
+    effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {a.effect, b.effect})
+    try:
+        cp = EffectProblem.from_experiment(problem.exp, effects=effects, base=problem, frames=problem.frames,
+                                           roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind,
+                                           inclusion=problem.inclusion, progress=say, cancel=cancel,
+                                           near_kPa=problem.moduli(a.parameters))
+        lik = Likelihood(cp, tracked, noise)
+        # the better one's moduli and parameters, with the other's own parameters
+        res = _fit_polished(cp, lik, [cp.complete({**b.parameters, **a.parameters})], cancel, max_evaluations,
+                            say, "the joint fit")
+    except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:
+        say(f"the joint fit failed ({exc}); the pattern match decides")
+        return None
+    joint = Candidate(f"{a.effect}+{b.effect}", effects, res.parameters, res.cost, _misfit(lik, res.parameters),
+                      a.n_parameters + b.n_parameters)
+    cp.release(keep=problem)
+    lnN = math.log(noise.n)
+    tb = TieBreak((a.effect, b.effect), joint, {a.effect: yields(a, b, joint, lnN, problem.nu),
+                                                b.effect: yields(b, a, joint, lnN, problem.nu)})
+    say(f"joint fit: chi2 {joint.misfit['chi2']:,.0f}; "
+        + ("; ".join(f"{e} yields ({r})" for e, r in tb.yields.items() if r) or "neither yields"))
+    return tb
+
+
+def yields(c: Candidate, other: Candidate, joint: Candidate, lnN: float, nu_model: float) -> str:
+    """Why the tied finding ``c`` yields to ``other`` given their ``joint`` fit (see
+    TieBreak), or "": added on top of ``other`` it does not earn its parameters
+    (``lnN`` each), or its fitted value there is no finding."""
+    gain = other.misfit["chi2"] - joint.misfit["chi2"]
+    cost = c.n_parameters * lnN
+    if gain < 0:
+        return f"{c.effect} raises chi2 by {-gain:,.0f} on top of {other.effect}"
+    if gain <= cost:
+        return (f"{c.effect} lowers chi2 by {gain:,.0f} on top of {other.effect}, less than its parameters "
+                f"cost ({cost:,.0f})")
+    if c.effect == "compressibility":
+        from app.core.effects.compressibility import NU_NEGLIGIBLE, negligible
+
+        if negligible(joint.parameters["nu"], nu_model):
+            return (f"Poisson's ratio comes out at {joint.parameters['nu']:.3f} with {other.effect}, within "
+                    f"{NU_NEGLIGIBLE} of the model's {nu_model:g}: no finding")
+    return ""
 
 
 def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings,
@@ -703,25 +805,7 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
         cp.share_hyperelastic_solver(problem)  # warm from the current model's equilibria if on its FE model
         cp.refresh_hyperelastic(start, cancel=cancel)
     lik = Likelihood(cp, tracked, noise)
-    start = cp.complete(start)
-    res = None
-    for s in _starts(eff, cp, start):
-        r = _fit_ml(cp, lik, s, cancel, max_evaluations, say)
-        if res is None or r.objective < res.objective:
-            res = r
-    for _ in range(POLISH_ROUNDS):
-        # the best start stopped at the evaluation cap, not at a minimum: go on from
-        # there (a viscoelastic fit at paper size, seed 101, stopped at g1 0.263 and
-        # tau 2.6 s with E_A -11.8%; from there g1 0.301, tau 1.99 s, E_A +7.4%, and
-        # the force chi2 3,073 -> 2,277). Not for a hyperelastic model: its fit goes
-        # in rounds of its own, each evaluation a nonlinear solve.
-        if res.evaluations < max_evaluations or "hyperelastic" in cp.effects:
-            break
-        say(f"{eff}: the fit stopped at {max_evaluations} evaluations; going on from there")
-        r = _fit_ml(cp, lik, res.parameters, cancel, max_evaluations, say)
-        if r.objective >= res.objective:
-            break
-        res = r
+    res = _fit_polished(cp, lik, _starts(eff, cp, cp.complete(start)), cancel, max_evaluations, say, eff)
     mis = _misfit(lik, res.parameters)
     cand = Candidate(eff, effects, res.parameters, res.cost, mis, INFO[eff].n_parameters, 0.0, "", inclusion, 0.0, cp)
     if eff == "inclusion":  # scored against the current model refitted on the same mesh
@@ -740,6 +824,30 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
 
 # how many times a candidate's best fit that stopped at the evaluation cap goes on
 POLISH_ROUNDS = 2
+
+
+def _fit_polished(cp: EffectProblem, lik: Likelihood, starts, cancel, max_evaluations, say, label: str) -> FitResult:
+    """The best maximum-likelihood fit from ``starts``, continued while it stops at the
+    evaluation cap (up to POLISH_ROUNDS more times)."""
+    res = None
+    for s in starts:
+        r = _fit_ml(cp, lik, s, cancel, max_evaluations, say)
+        if res is None or r.objective < res.objective:
+            res = r
+    for _ in range(POLISH_ROUNDS):
+        # the best start stopped at the evaluation cap, not at a minimum: go on from
+        # there (a viscoelastic fit at paper size, seed 101, stopped at g1 0.263 and
+        # tau 2.6 s with E_A -11.8%; from there g1 0.301, tau 1.99 s, E_A +7.4%, and
+        # the force chi2 3,073 -> 2,277). Not for a hyperelastic model: its fit goes
+        # in rounds of its own, each evaluation a nonlinear solve.
+        if res.evaluations < max_evaluations or "hyperelastic" in cp.effects:
+            break
+        say(f"{label}: the fit stopped at {max_evaluations} evaluations; going on from there")
+        r = _fit_ml(cp, lik, res.parameters, cancel, max_evaluations, say)
+        if r.objective >= res.objective:
+            break
+        res = r
+    return res
 
 
 def _starts(eff, problem: EffectProblem, start: dict) -> list[dict]:

@@ -333,8 +333,9 @@ class ModelCheckPanel(Panel):
                            "positive score among the effects that also remove at least "
                            f"{MATERIAL_FRACTION:.0%} of the error beyond the noise (and move a Poisson's ratio at "
                            f"least {NU_NEGLIGIBLE} from the model's), else none. Among those scoring at least "
-                           f"{NEAR_TIE:.0%} of the best (a near tie), the verdict is the one whose pattern the "
-                           "misfit has most closely."))
+                           f"{NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still needed when "
+                           "the two best are fitted together, else the one whose pattern the misfit has most "
+                           "closely."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
