@@ -36,7 +36,9 @@ CASES = {
     "slide": (102, ["--effects", "sliding-bottom"], "sliding-bottom"),
     "slip": (103, ["--effects", "probe-slip"], "probe-slip"),
     "nu": (104, ["--nu", "0.4"], "compressibility"),
-    "incl": (105, ["--hidden", "sphere:22,45,78,6,60"], "inclusion"),
+    "incl": (105, ["--hidden", "sphere:22,45,78,6,60"], "inclusion"),  # centred outside the field of view
+    "incl-view": (115, ["--hidden", "sphere:58,45,84,6,60"], "inclusion"),  # in view, 12 mm deep, beside A
+    "slip-113": (113, ["--effects", "probe-slip"], "probe-slip"),
     "hyper": (107, ["--effects", "hyperelastic"], "hyperelastic"),
 }
 

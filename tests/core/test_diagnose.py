@@ -554,6 +554,33 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
 
 
+def test_the_scan_tries_spheres_partly_out_of_view_and_no_wider_than_the_field_allows():
+    """The paper-size field (tracked x 28.7-60.7 mm, z 63.6-92.4 mm in a 90 x 90 x 96
+    mm block, steps of 3.6 mm): centres reach a radius beyond the field (the hidden
+    sphere of seed 105 is centred at x = 22, outside it), the grid inside the field
+    is the one scanned before, no sphere is wider than MAX_WIDTH of the field
+    (the 13.5 mm radius is capped at 6.4), and every sphere lies inside the block."""
+    from app.core.effects.inclusion import MAX_WIDTH, candidate_spheres
+
+    lo, hi, size, step = np.array([28.7, 45.0, 63.6]), np.array([60.7, 45.0, 92.4]), (90.0, 90.0, 96.0), 3.6
+    sph = candidate_spheres(lo, hi, 45.0, size, [5.4, 9.0, 13.5], step, 32.0)
+    radii = sorted({r for _, r in sph})
+    assert radii == [5.4, pytest.approx(0.5 * MAX_WIDTH * 32.0)] and max(radii) == pytest.approx(6.4)
+    C = np.array([c for c, _ in sph])
+    R = np.array([r for _, r in sph])
+    assert np.all(C - R[:, None] >= 0.5 - 1e-9) and np.all(C + R[:, None] <= np.array(size) - 0.5 + 1e-9)
+    assert C[:, 0].min() < lo[0] - 5.0 and C[:, 2].min() < lo[2] - 5.0  # beyond the field
+    assert len({(tuple(np.round(c, 6)), r) for c, r in sph}) == len(sph)  # no repeats
+    for x in np.arange(lo[0], hi[0] + 1e-9, step):  # the in-field grid of before, radius 5.4
+        for z in np.arange(lo[2], hi[2] + 1e-9, step):
+            c = np.clip([x, 45.0, z], 5.9, np.array(size) - 5.9)
+            assert np.any((np.abs(C - c).max(axis=1) < 1e-9) & (R == 5.4)), c
+    # a field the cap does not bind (the test phantoms': 29 mm wide, radii up to 4.5 mm)
+    sph = candidate_spheres(np.array([5.5, 20, 4.2]), np.array([34.3, 20, 26.6]), 20.0, (40, 40, 30), [1.8, 3, 4.5],
+                            1.2, 28.8)
+    assert sorted({r for _, r in sph}) == [1.8, 3.0, 4.5]
+
+
 def test_a_located_inclusion_is_meshed_with_the_looser_envelope(monkeypatch):
     """current_model() with an inclusion and automatic settings meshes with
     LOCATED_EPSILON (the candidate and the added version alike); explicit
