@@ -381,11 +381,13 @@ JOINT_EFFECTS = ("viscoelastic", "sliding-bottom", "probe-slip", "compressibilit
 
 @dataclass
 class TieBreak:
-    """The two best findings of a near tie fitted together (``joint``). An effect
-    *yields* when, with the other one in the model, it no longer earns its
-    parameters or its fitted value is no finding (``negligible``): the data need
-    the other. ``yields`` maps each effect to the reason it yields ("" if it
-    does not); the verdict is the other effect when exactly one yields.
+    """Two findings of a near tie, the best two among JOINT_EFFECTS, fitted together
+    (``joint``). An effect *yields* when, with the other one in the model, it no
+    longer earns its parameters or its fitted value is no finding
+    (``negligible``): the data need the other. ``yields`` maps each effect to the
+    reason it yields ("" if it does not). When exactly one yields (the
+    ``loser``), it is out of the tie, and the pattern match decides among the
+    rest (choose_verdict).
 
     Where this came from: at paper size with probe slip hidden (seed 103),
     compressibility (Poisson's ratio 0.468) outscored probe-slip, +1,569 against
@@ -404,6 +406,11 @@ class TieBreak:
         y = [e for e in self.effects if self.yields[e]]
         return next(e for e in self.effects if e not in y) if len(y) == 1 else ""
 
+    @property
+    def loser(self) -> str:
+        """The effect that yields to the winner, or "" when the joint fit does not tell."""
+        return next(e for e in self.effects if e != self.winner) if self.winner else ""
+
     def to_json_dict(self) -> dict:
         return {"effects": list(self.effects), "parameters": self.joint.parameters,
                 "chi2": round(float(self.joint.misfit["chi2"]), 3),
@@ -412,9 +419,9 @@ class TieBreak:
 
 def choose_verdict(ranked, tie_break: TieBreak | None = None) -> str:
     """The verdict among candidates ranked by score: the best-scoring finding, or
-    in a near tie the one the joint fit of the two best says the data need
-    (``tie_break``, see TieBreak), else the finding whose pattern the misfit has
-    most closely.
+    in a near tie the finding whose pattern the misfit has most closely, once the
+    one that yields in the joint fit of two of them (``tie_break``, see TieBreak)
+    is out.
 
     Scores that close do not decide: the noise model counts tracked blocks as
     independent, and the model's own error (the mesh, the tracking of frames far
@@ -431,7 +438,7 @@ def choose_verdict(ranked, tie_break: TieBreak | None = None) -> str:
     if not tie:
         return "none"
     if tie_break is not None and tie_break.winner:
-        return tie_break.winner
+        tie = [c for c in tie if c.effect != tie_break.loser]
     best = tie[0]
     for c in tie[1:]:
         if (c.signature or 0.0) > (best.signature or 0.0) + SIGNATURE_MARGIN:
@@ -449,7 +456,7 @@ class Diagnosis:
     seconds: float
     comparison: Comparison | None = field(default=None, repr=False)
     tracked: TrackedField | None = field(default=None, repr=False)
-    tie_break: TieBreak | None = None  # the near tie's two best fitted together, if they were
+    tie_break: TieBreak | None = None  # two of a near tie fitted together, if they were
 
     def candidate(self, effect: str) -> Candidate:
         return next(c for c in self.candidates if c.effect == effect)
@@ -457,10 +464,13 @@ class Diagnosis:
     @property
     def rival(self) -> str:
         """In a near tie (see choose_verdict), the finding beside the verdict that
-        scores best: the data then barely decide between the two. "" else."""
+        scores best, preferring one that did not yield in the joint fit: the data
+        then barely decide between the two. "" else."""
         if self.verdict == "none":
             return ""
-        return next((c.effect for c in near_tie(self.candidates) if c.effect != self.verdict), "")
+        tie = [c.effect for c in near_tie(self.candidates) if c.effect != self.verdict]
+        out = self.tie_break.loser if self.tie_break is not None else ""
+        return next((e for e in tie if e != out), next(iter(tie), ""))  # one that did not yield, if any
 
     def tie_advice(self) -> str:
         """What to do about a near tie, in words ("" when there is none)."""
@@ -471,10 +481,13 @@ class Diagnosis:
         how = "nearly as well" if c.score <= v.score else "slightly better"
         why = ""
         tb = self.tie_break
-        if tb is not None and tb.winner == v.effect:
+        if tb is not None and tb.loser == r:
             why = f"; fitted together, {tb.yields[r]}, so the verdict goes to {v.effect}"
-        elif c.score > v.score:
-            why = (f"; the verdict goes to {v.effect}, whose pattern the misfit has more closely "
+        elif tb is not None and tb.loser:
+            why = (f"; {tb.loser} ({self.candidate(tb.loser).score:+,.0f}) yields to {tb.winner}: fitted together, "
+                   f"{tb.yields[tb.loser]}")
+        if c.score > v.score and (tb is None or tb.loser != r):
+            why += (f"; the verdict goes to {v.effect}, whose pattern the misfit has more closely "
                    f"({max(v.signature or 0, 0):.0%} against {max(c.signature or 0, 0):.0%})")
         return (f"{r} scores {how} ({c.score:+,.0f} against {v.score:+,.0f}){why}: these measurements barely "
                 f"separate the two. Use what you know of the setup ({INFO[self.verdict].title} or "
@@ -728,10 +741,10 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
 
 
 def _tie_break(ranked, problem: EffectProblem, tracked, noise, max_evaluations, say, cancel) -> TieBreak | None:
-    """The two best findings of a near tie fitted together (see TieBreak), when both
-    are JOINT_EFFECTS; None else, or when the joint model cannot be fitted."""
-    tie = near_tie(ranked)
-    if len(tie) < 2 or not all(c.effect in JOINT_EFFECTS for c in tie[:2]):
+    """The two best findings of a near tie among JOINT_EFFECTS fitted together (see
+    TieBreak); None when there are not two, or when the joint model cannot be fitted."""
+    tie = [c for c in near_tie(ranked) if c.effect in JOINT_EFFECTS]
+    if len(tie) < 2:
         return None
     a, b = tie[:2]
     if cancel is not None and cancel.is_set():
@@ -777,7 +790,7 @@ def yields(c: Candidate, other: Candidate, joint: Candidate, lnN: float, nu_mode
 
         if negligible(joint.parameters["nu"], nu_model):
             return (f"Poisson's ratio comes out at {joint.parameters['nu']:.3f} with {other.effect}, within "
-                    f"{NU_NEGLIGIBLE} of the model's {nu_model:g}: no finding")
+                    f"{NU_NEGLIGIBLE} of the model's {nu_model:g} (no finding)")
     return ""
 
 

@@ -414,6 +414,19 @@ def test_a_near_tie_of_two_effects_is_settled_by_fitting_them_together():
     js = d.to_json_dict()["tie_break"]
     assert js["verdict"] == "probe-slip" and js["yields"] == {"compressibility": why, "probe-slip": None}
     assert js["chi2"] == 2114.0 and js["parameters"] == {"nu": 0.48}
+    # the same data with the inclusion scan of 4c967ea: a soft sphere under the probe tied
+    # too (+1,438, 75%). Compressibility is out by the joint fit; between the inclusion
+    # and probe-slip the pattern match decides (78% against 75%); the rival is the one
+    # that did not yield
+    incl = Candidate("inclusion", ("inclusion",), {}, {}, {"chi2": 2100.0}, 4, 1438.2, "", material=True,
+                     signature=0.752)
+    cs = [comp, incl, slip]
+    d = Diagnosis("x", base, cs, choose_verdict(cs, tb), NoiseModel(0.02, 1481, 0.165, 282), 1.0, tie_break=tb)
+    assert choose_verdict(cs) == "compressibility" and d.verdict == "probe-slip" and d.rival == "inclusion"
+    advice = d.tie_advice()
+    assert advice.startswith("inclusion scores slightly better (+1,438 against +1,415); compressibility (+1,569) "
+                             "yields to probe-slip: fitted together, Poisson's ratio comes out at 0.480"), advice
+    assert "the verdict goes to probe-slip, whose pattern the misfit has more closely (78% against 75%)" in advice
     # the runner-up adds less than its parameter costs on top of the best: the best stays
     joint = cand("compressibility+probe-slip", 0.468, 2192.1 - 0.5 * lnN, n=2)
     why = yields(slip, comp, joint, lnN, 0.49)

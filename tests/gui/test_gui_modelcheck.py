@@ -272,3 +272,20 @@ def test_a_near_tie_is_shown_under_the_verdict(window, qtbot):
     assert "Verdict: sliding-bottom" in text and "Near tie: inclusion scores slightly better" in text
     assert "+2,873 against +2,783" in text and "about 2% apart" in text
     assert panel.verdict_row() == 1  # the table stays ranked by score; the verdict's row is marked
+    # a tie the joint fit settled (paper-size probe slip): the line says why
+    from app.core.diagnose import TieBreak
+
+    cands = [Candidate("compressibility", ("compressibility",), {"nu": 0.468}, {}, misfit, 1, 1569.0, "volume",
+                       material=True, signature=0.792),
+             Candidate("probe-slip", ("probe-slip",), {}, {}, misfit, 1, 1415.0, "slides", material=True,
+                       signature=0.778)]
+    why = "Poisson's ratio comes out at 0.480 with probe-slip, within 0.02 of the model's 0.49 (no finding)"
+    tb = TieBreak(("compressibility", "probe-slip"), Candidate("j", (), {"nu": 0.48}, {}, {"chi2": 1.0}, 2),
+                  {"compressibility": why, "probe-slip": ""})
+    d = Diagnosis("x", Candidate("", (), {}, {}, misfit), cands, "probe-slip", NoiseModel(0.02, 10, 0.1, 10), 98.0,
+                  tie_break=tb)
+    panel._show(panel.model.apply((None, None, Snapshot(h, None, d, 0, "diagnose", "diagnosis: verdict probe-slip"))))
+    text = panel.verdict_label.text()
+    assert "Verdict: probe-slip" in text and "Near tie: compressibility scores slightly better" in text
+    assert "fitted together, Poisson&#x27;s ratio comes out at 0.480" in text and "verdict goes to probe-slip" in text
+    assert panel.verdict_row() == 1
