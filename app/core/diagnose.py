@@ -604,9 +604,16 @@ def same_mesh_model(problem: EffectProblem, cp: EffectProblem, near_kPa=None, ca
     added = labels >= n  # the located sphere: the mesh's last region
     labels[added] = paint_labels(m.points_mm[m.tets[added]].mean(axis=1), problem.exp.specimen.regions)
     mesh = replace(m, labels=labels, region_names=problem.mesh.region_names)
-    return EffectProblem.from_experiment(problem.exp, effects=problem.effects, mesh=mesh, frames=problem.frames,
-                                         roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind,
-                                         inclusion=problem.inclusion, cancel=cancel, near_kPa=near_kPa)
+    return _model_like(problem, problem.effects, near_kPa, cancel, mesh=mesh)
+
+
+def _model_like(problem: EffectProblem, effects, near_kPa, cancel, **kw) -> EffectProblem:
+    """A model with ``effects`` of ``problem``'s experiment, frames, region of
+    interest, Poisson's ratio, cost and inclusion (``kw``: the mesh, or the model
+    to share its FE model with, and a progress callback)."""
+    return EffectProblem.from_experiment(problem.exp, effects=effects, frames=problem.frames, roi_px=problem.roi,
+                                         nu=problem.nu, cost=problem.cost_kind, inclusion=problem.inclusion,
+                                         cancel=cancel, near_kPa=near_kPa, **kw)
 
 
 class _InclusionPrep:
@@ -752,10 +759,7 @@ def _tie_break(ranked, problem: EffectProblem, tracked, noise, max_evaluations, 
     say(f"{a.effect} and {b.effect} explain the misfit nearly equally well: fitting them together")
     effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {a.effect, b.effect})
     try:
-        cp = EffectProblem.from_experiment(problem.exp, effects=effects, base=problem, frames=problem.frames,
-                                           roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind,
-                                           inclusion=problem.inclusion, progress=say, cancel=cancel,
-                                           near_kPa=problem.moduli(a.parameters))
+        cp = _model_like(problem, effects, problem.moduli(a.parameters), cancel, base=problem, progress=say)
         lik = Likelihood(cp, tracked, noise)
         # the better one's moduli and parameters, with the other's own parameters
         res = _fit_polished(cp, lik, [cp.complete({**b.parameters, **a.parameters})], cancel, max_evaluations,
@@ -810,10 +814,7 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
         host = problem.moduli_names[int(paint_labels(np.array([guess.center_mm]), problem.exp.specimen.regions)[0])]
         start[f"E_{guess.name}_kPa"] = base.parameters.get(host, bg) * (2.0 if guess.stiffer else 0.5)
     else:
-        cp = EffectProblem.from_experiment(problem.exp, effects=effects, base=problem, frames=problem.frames,
-                                           roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind,
-                                           inclusion=inclusion, progress=say, cancel=cancel,
-                                           near_kPa=problem.moduli(start))
+        cp = _model_like(problem, effects, problem.moduli(start), cancel, base=problem, progress=say)
     if "hyperelastic" in problem.effects and cp._hyper is None:
         cp.share_hyperelastic_solver(problem)  # warm from the current model's equilibria if on its FE model
         cp.refresh_hyperelastic(start, cancel=cancel)
