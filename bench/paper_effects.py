@@ -40,6 +40,11 @@ CASES = {
     "incl-view": (115, ["--hidden", "sphere:58,45,84,6,60"], "inclusion"),  # in view, 12 mm deep, beside A
     "slip-113": (113, ["--effects", "probe-slip"], "probe-slip"),
     "hyper": (107, ["--effects", "hyperelastic"], "hyperelastic"),
+    # the simulator's defaults but the effect: no hold, no unloading
+    "none-126": (126, [], "none"),
+    "visco-ramp": (121, ["--effects", "viscoelastic"], "viscoelastic"),
+    "slip-123": (123, ["--effects", "probe-slip"], "probe-slip"),
+    "slide-unload": (122, ["--effects", "sliding-bottom", "--hold-s", "3", "--unload"], "sliding-bottom"),
 }
 
 

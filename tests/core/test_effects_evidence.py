@@ -44,3 +44,33 @@ def test_the_hyperelastic_evidence_says_what_large_deformation_would_change():
     # slopes over 10-50% and 50-100% of the travel: (1 + 1.75 a) / (1 + 0.31 a) - 1 = 9% for a = 0.066
     assert s.endswith("with large deformation (neo-Hookean) it stiffens by 9%"), s
     assert "neo-Hookean" not in hyper_evidence(d, neo, linear)  # without a candidate: the two forces only
+
+
+def test_the_poisson_ratio_sentence_says_which_way_the_volume_goes():
+    from app.core.effects.compressibility import evidence
+
+    assert "a Poisson's ratio of 0.39 says, where the model keeps it at 0.49" in evidence(0.392, 0.49, 1.8, 1.1)
+    assert "a Poisson's ratio of 0.486 says, where the model keeps it at 0.490" in evidence(0.486, 0.49, 0.5, 0.5)
+    # above the model's: the tissue changes volume less, and 0.496 must not read 0.50
+    above = evidence(0.496, 0.49, 1.3, 1.2)
+    assert above.startswith("the tissue keeps its volume under the probe more strictly than the model's "
+                            "Poisson's ratio of 0.490 allows (a fit gives 0.496)")
+    assert "changes volume" not in above
+
+
+def test_the_hold_sentence_reads_the_way_the_force_went():
+    import numpy as np
+
+    from app.core.effects.viscoelastic import evidence
+
+    t = np.linspace(0.0, 20.0, 2001)
+    d = np.clip(t, 0.0, 10.0)  # a 10 mm ramp at 1 mm/s, then a 10 s hold
+    model = 0.5 * d
+    # 30% relax in all; the sentence averages 0.4 s after the hold starts (noise), so it reads 26%
+    relaxing = model * np.where(t > 10.0, 1.0 - 0.3 * (1.0 - np.exp(-(t - 10.0) / 2.0)), 1.0)
+    assert evidence(t, d, relaxing, model).startswith("the force relaxes by 26% during the 10 s hold; "
+                                                      "the model keeps it constant")
+    assert evidence(t, d, model * (1 + 0.001 * np.sin(t)), model).startswith(
+        "the force holds steady (within 0.5%) during the 10 s hold")
+    rising = model * np.where(t > 10.0, 1.0 + 0.05 * (t - 10.0) / 10.0, 1.0)
+    assert evidence(t, d, rising, model).startswith("the force rises by 5% during the 10 s hold")

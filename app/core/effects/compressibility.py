@@ -65,11 +65,16 @@ class LameReducedModel(ReducedModel):
 
 def evidence(nu_fit: float, nu_baseline: float, rms_before_px: float, rms_after_px: float) -> str:
     # volume change of a small cube under uniaxial strain eps with free sides: (1 - 2 nu) eps
-    digits = 2 if round(nu_fit, 2) != round(nu_baseline, 2) else 3  # 0.487 vs 0.49 must not read "0.49 vs 0.49"
+    # 0.487 vs 0.49 must not read "0.49 vs 0.49", nor 0.496 read "0.50" (no volume change at all)
+    digits = 2 if round(nu_fit, 2) != round(nu_baseline, 2) and nu_fit < 0.485 else 3
     fit, base = f"{nu_fit:.{digits}f}", f"{nu_baseline:.{digits}f}"
-    return (f"the tissue changes volume under the probe as a Poisson's ratio of {fit} says, where the model "
-            f"keeps it at {base} (nearly incompressible); the displacement misfit "
-            f"{misfit_change(rms_before_px, rms_after_px)}")
+    if nu_fit > nu_baseline:
+        what = (f"the tissue keeps its volume under the probe more strictly than the model's Poisson's ratio of "
+                f"{base} allows (a fit gives {fit})")
+    else:
+        what = (f"the tissue changes volume under the probe as a Poisson's ratio of {fit} says, where the model "
+                f"keeps it at {base} (nearly incompressible)")
+    return f"{what}; the displacement misfit {misfit_change(rms_before_px, rms_after_px)}"
 
 
 def negligible(nu_fit: float, nu_model: float) -> str:

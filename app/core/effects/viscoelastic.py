@@ -107,8 +107,9 @@ def evidence(t_s, d_mm, measured_N, model_N, fitted_N=None, parameters: dict | N
             meas = 100 * (f0 - f1) / f0
             mod = 100 * (m0 - m1) / m0 if m0 > 0 else 0.0
             keeps = "keeps it constant" if abs(mod) < 2 else f"relaxes it by {mod:.0f}%"
-            return (f"the force relaxes by {meas:.0f}% during the {t[i1] - t[i0]:.0f} s hold; "
-                    f"the model {keeps}")
+            what = (f"relaxes by {meas:.0f}%" if meas >= 0.5 else f"rises by {-meas:.0f}%" if meas <= -0.5
+                    else "holds steady (within 0.5%)")
+            return f"the force {what} during the {t[i1] - t[i0]:.0f} s hold; the model {keeps}"
     peak = int(np.argmax(d))
     if peak < len(d) - 5 and d[peak] > 0:
         half = 0.5 * d[peak]
