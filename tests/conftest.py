@@ -4,6 +4,16 @@ from pathlib import Path
 
 import pytest
 
+# Two pytest-xdist workers share this machine's two cores. MKL's OpenMP threads
+# (PARDISO's factorizations and solves) would be two per worker, four on two
+# cores, spinning while they wait for one another: one per worker. Measured
+# 2026-11-27, two no-effect diagnoses side by side: 139 s wall and 267
+# CPU-seconds with MKL's default threads, 107 s and 205 with one. Set before
+# anything loads MKL; a value given in the environment wins.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
+
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 

@@ -3,6 +3,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -109,8 +110,17 @@ def test_meshes_are_cached_by_their_inputs(mesh):
     again = build_mesh(SIZE, PROBE, REGIONS, SETTINGS)
     assert time.perf_counter() - t0 < 2.0
     assert np.array_equal(again.tets, mesh.tets)
-    other = build_mesh(SIZE, PROBE, REGIONS[:2], MeshSettings(edge_mm=12.0, probe_edge_mm=4.0))
-    assert other.n_tets != mesh.n_tets
+    # other inputs are another mesh: every input is in the key (meshing them here took 54 s of the suite)
+    from app.core.mesh import _mesh_key
+
+    key = _mesh_key(SIZE, PROBE, REGIONS, SETTINGS)
+    assert _mesh_key(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=6.0, probe_edge_mm=2.0)) == key
+    others = [(SIZE, PROBE, REGIONS[:2], SETTINGS),
+              (SIZE, PROBE, REGIONS, MeshSettings(edge_mm=12.0, probe_edge_mm=2.0)),
+              ((SIZE[0] + 1.0, *SIZE[1:]), PROBE, REGIONS, SETTINGS),
+              (SIZE, (PROBE[0] + 1.0, *PROBE[1:]), REGIONS, SETTINGS),
+              (SIZE, PROBE, (REGIONS[0], replace(REGIONS[1], radius_mm=6.0), *REGIONS[2:]), SETTINGS)]
+    assert len({_mesh_key(*o) for o in others} | {key}) == len(others) + 1
 
 
 def test_meshing_can_be_cancelled():
