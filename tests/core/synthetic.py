@@ -126,6 +126,34 @@ def diagnose_case(name: str) -> Path:
     return folder
 
 
+# the candidates that refit quickly (no new mesh, no neo-Hookean solves)
+DIAGNOSE_FAST = ("viscoelastic", "sliding-bottom", "probe-slip")
+
+
+def diagnose_experiment(tmp_path_factory, name: str):
+    """A copy of the committed hidden-effect experiment ``name``, read, after
+    checking that its identification mesh (DIAGNOSE_ID_MESH) is one of the
+    committed meshes (tests/data/meshes)."""
+    import shutil
+
+    from app.core.experiment import read_experiment
+    from app.core.mesh import _mesh_key
+
+    folder = tmp_path_factory.mktemp(name) / "exp"
+    shutil.copytree(diagnose_case(name), folder)
+    exp = read_experiment(folder)
+    key = _mesh_key(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions, DIAGNOSE_ID_MESH)
+    meshes = Path(__file__).resolve().parents[1] / "data" / "meshes"
+    assert (meshes / f"{key}.npz").is_file(), (
+        f"tests/data/meshes has no mesh {key}.npz: meshing changed (MESH_VERSION); regenerate the fixed meshes")
+    return exp
+
+
+def moduli_errors(params: dict, truth: dict) -> dict:
+    """Relative error of each region's modulus in ``params`` against ``truth`` (kPa by region)."""
+    return {k: params[f"E_{k}_kPa"] / v - 1 for k, v in truth.items()}
+
+
 if __name__ == "__main__":  # python -m tests.core.synthetic: write the committed experiments again
     import sys
 

@@ -21,9 +21,7 @@ then write the experiments again.
 """
 
 import math
-import shutil
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,32 +34,9 @@ from tests.core import synthetic
 
 ID_MESH = synthetic.DIAGNOSE_ID_MESH
 BASE = synthetic.DIAGNOSE_BASE
-FAST = ("viscoelastic", "sliding-bottom", "probe-slip")
-
-
-MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
-
-
-def _check_fixed(exp):
-    """The identification mesh of ``exp`` is one of the committed ones."""
-    from app.core.mesh import _mesh_key
-
-    key = _mesh_key(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions, ID_MESH)
-    assert (MESHES / f"{key}.npz").is_file(), (
-        f"tests/data/meshes has no mesh {key}.npz: meshing changed (MESH_VERSION); regenerate the fixed meshes")
-
-
-def _make(tmp_path_factory, name):
-    """A copy of the committed hidden-effect experiment ``name`` (synthetic.DIAGNOSE_CASES)."""
-    folder = tmp_path_factory.mktemp(name) / "exp"
-    shutil.copytree(synthetic.diagnose_case(name), folder)
-    exp = read_experiment(folder)
-    _check_fixed(exp)
-    return exp
-
-
-def _moduli_errors(params, truth):
-    return {k: params[f"E_{k}_kPa"] / v - 1 for k, v in truth.items()}
+FAST = synthetic.DIAGNOSE_FAST
+_make = synthetic.diagnose_experiment
+_moduli_errors = synthetic.moduli_errors
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,10 @@ import pytest
 from app.core.diagnose import ModelCheck, diagnose
 from app.core.effects import EFFECT_IDS
 from app.core.simulate import read_truth
-from tests.core.test_diagnose import FAST, ID_MESH, _make, _moduli_errors
+from tests.core.synthetic import DIAGNOSE_FAST as FAST
+from tests.core.synthetic import DIAGNOSE_ID_MESH as ID_MESH
+from tests.core.synthetic import diagnose_experiment as _make
+from tests.core.synthetic import moduli_errors as _moduli_errors
 
 _DIAGNOSED = {}
 
