@@ -395,6 +395,10 @@ class _Session:
         if timeout_s is None:
             timeout_s = min(rig.sample_period_s, rig.status_period_s) / 2
         samples: list[ForceSample] = []
+        # Silence is judged up to the start of a read that then found nothing. Had it been judged at
+        # the end of the tick, a stall of this process (a long GIL hold, a busy machine) between the
+        # read and the check would pass for a dead sensor while its data waited in the port.
+        listened_t = self.clock.now()
         if self.sensor_alive:
             try:
                 samples = rig.sensor.read_samples(timeout_s)
@@ -419,9 +423,10 @@ class _Session:
             self._last_req = now
             if self._unanswered_since is None:
                 self._unanswered_since = now
+        polled_t = self.clock.now()
         self._poll_stage(0.0)
         self._resolve(final=False)
-        self._check_timeouts(now)
+        self._check_timeouts(listened_t, polled_t)
         self._report(now)
         if not self.securing:
             if rig._estop.is_set():
@@ -493,15 +498,17 @@ class _Session:
             self.recorder.add_rows(rows)
         self.rows += len(rows)
 
-    def _check_timeouts(self, now: float) -> None:
+    def _check_timeouts(self, listened_t: float, polled_t: float) -> None:
+        """Fault a device silent for longer than its timeout before the read (poll) that found it silent."""
         if self.securing:
             return
         rig = self.rig
-        if self.sensor_alive and now - self.last_sample_t > rig.sensor_timeout_s:
+        silent = listened_t - self.last_sample_t
+        if self.sensor_alive and silent > rig.sensor_timeout_s:
             self.sensor_alive = False
-            raise DeviceTimeout(f"no samples for {now - self.last_sample_t:.2f} s: the sensor stopped "
-                                f"sending data", device="force sensor")
-        waited = 0.0 if self._unanswered_since is None else now - self._unanswered_since
+            raise DeviceTimeout(f"no samples for {silent:.2f} s: the sensor stopped sending data",
+                                device="force sensor")
+        waited = 0.0 if self._unanswered_since is None else polled_t - self._unanswered_since
         if self.stage_alive and waited > rig.stage_timeout_s:
             self.stage_alive = False
             raise DeviceTimeout(f"no status report for {waited:.2f} s: the stage controller stopped answering",

@@ -115,3 +115,53 @@ def test_acquire_reports_a_port_that_is_not_there(tmp_path, capsys):
 def test_specimen_hook_without_an_experiment():
     m = specimen_force_model(None, (), contact_mm=1.5)
     assert isinstance(m, NonlinearSpring) and m.contact_mm == 1.5
+
+
+def _hold_the_gil(seconds: float) -> None:
+    """Stall this process as a busy window would: no other thread runs for ``seconds``."""
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(10.0)
+    try:
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            pass
+    finally:
+        sys.setswitchinterval(old)
+
+
+def test_a_stalled_process_does_not_pass_for_a_dead_sensor():
+    """The data of a stall waits in the port: the watchdog must read it before it judges.
+
+    CI once failed a GUI jog with "no samples for 0.23 s" on a busy machine: the check ran
+    after the stall and before the next read. Three 0.4 s stalls (twice the 0.2 s timeout)
+    during a jog against the rig served by another process, as hardware would be.
+    """
+    import threading
+
+    from app.devices.acquisition import Rig
+    from app.devices.grbl import GrblStage
+    from app.devices.loadcell import AsciiLoadCell
+
+    proc, ports = _start_rig()
+    try:
+        rig = Rig(GrblStage.open(ports["stage"]), AsciiLoadCell.open(ports["force"]))
+        assert rig.sensor_timeout_s < 0.4
+        out = {}
+
+        def jog():
+            try:
+                out["status"] = rig.jog(3.0, 1.0)
+            except Exception as exc:  # reported below, with its message
+                out["error"] = exc
+
+        worker = threading.Thread(target=jog)
+        worker.start()
+        for _ in range(3):
+            time.sleep(0.3)
+            _hold_the_gil(0.4)
+        worker.join(timeout=20)
+        rig.close()
+        assert "error" not in out, out.get("error")
+        assert out["status"].travel_mm == pytest.approx(3.0, abs=0.01)
+    finally:
+        _stop_rig(proc)
