@@ -98,11 +98,20 @@ def evidence(t_s, d_mm, measured_N, model_N, fitted_N=None, parameters: dict | N
         lo, hi = max(0, i - win), min(len(x), i + win + 1)
         return float(np.mean(x[lo:hi]))
 
+    def at(x, i, j):
+        # the force at sample i, from a quadratic through samples i..j: a plain average of the
+        # window would sit inside the fast early relaxation and read 26% for a 30% relaxation
+        lo, hi = min(i, j), max(i, j) + 1
+        if hi - lo < 4:
+            return float(x[i])
+        return float(np.polyval(np.polyfit(t[lo:hi] - t[i], x[lo:hi], 2), 0.0))
+
     hs = holds(t, d)
     if hs:
         i0, i1 = max(hs, key=lambda h: t[h[1]] - t[h[0]])
-        f0, f1 = avg(F, i0 + win), avg(F, i1 - win)
-        m0, m1 = avg(M, i0 + win), avg(M, i1 - win)
+        span = min(2 * win, (i1 - i0) // 2)
+        f0, f1 = at(F, i0, i0 + span), at(F, i1, i1 - span)
+        m0, m1 = at(M, i0, i0 + span), at(M, i1, i1 - span)
         if f0 > 0:
             meas = 100 * (f0 - f1) / f0
             mod = 100 * (m0 - m1) / m0 if m0 > 0 else 0.0
