@@ -37,11 +37,19 @@ sqrt(1/rho^2 - 1) of its correlation rho (the Cramer-Rao bound of speckle
 tracking), and the scale is estimated from the blocks themselves (the scatter
 of second differences across neighbouring blocks, each divided by its own
 factor, which a smooth misfit does not reach).
+
+A speckle match can still go wrong (a decorrelated block under the probe's
+edge finds a spurious peak); its difference then disagrees with its
+neighbours', which a misfit of the model would not. :func:`outliers` flags such
+blocks by the normalized median test; the comparison leaves them out of the
+regions' shares and the window draws them apart. The diagnosis keeps every
+block: its image term is robust by itself (a Huber loss, 3 x 3 medians).
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -252,6 +260,68 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
 # ---------------------------------------------------------------------------
 
 
+_NEIGHBOURHOODS: dict = {}
+
+
+def neighbourhoods(valid: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """For each valid block (in index order), the indices of the valid blocks in its
+    3 x 3 neighbourhood, itself included: (n_valid, 9), -1 where there is none.
+    Depends only on which blocks are valid, so it is built once per tracked pair
+    (the fits of a diagnosis evaluate the misfit thousands of times)."""
+    key = (np.asarray(valid, bool).tobytes(), np.asarray(grid).tobytes())
+    idx = _NEIGHBOURHOODS.get(key)
+    if idx is None:
+        lut = {tuple(g): i for i, g in enumerate(grid) if valid[i]}
+        rows = []
+        for i, (r, cc) in enumerate(grid):
+            if valid[i]:
+                rows.append([lut.get((r + dr, cc + dc), -1) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
+        idx = np.asarray(rows, int).reshape(-1, 9)
+        if len(_NEIGHBOURHOODS) > 256:
+            _NEIGHBOURHOODS.clear()
+        _NEIGHBOURHOODS[key] = idx
+    return idx
+
+
+def gather(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """values[idx] with NaN where idx is -1: (n_valid, 9, ...)."""
+    v = np.asarray(values, float)[np.where(idx >= 0, idx, 0)]
+    v[idx < 0] = np.nan  # a (n, 9) mask selects whole trailing rows
+    return v
+
+
+OUTLIER_THRESHOLD = 3.0  # normalized median residual above which a block is a tracking outlier
+OUTLIER_MIN_NEIGHBOURS = 4  # a median of fewer valid neighbours is too unsure to judge a block by
+
+
+def outliers(diff_px: np.ndarray, valid: np.ndarray, grid: np.ndarray, eps_px: float) -> np.ndarray:
+    """Valid blocks whose difference (measured - model) disagrees with their
+    neighbours': the normalized median test of particle image velocimetry
+    (Westerweel and Scarano 2005, Exp. Fluids 39: 1096). Per component, the
+    distance to the median of the valid 3 x 3 neighbours (itself excluded),
+    divided by their median distance to it plus ``eps_px`` (the tracking noise);
+    above OUTLIER_THRESHOLD in either component the block is an outlier, a
+    speckle match gone wrong rather than a misfit of the model, which its
+    neighbours would share. Blocks with fewer than OUTLIER_MIN_NEIGHBOURS valid
+    neighbours (a corner) are kept.
+    Returns an (n,) bool mask."""
+    valid = np.asarray(valid, bool)
+    out = np.zeros(len(valid), bool)
+    idx = neighbourhoods(valid, grid).copy()
+    if len(idx) == 0:
+        return out
+    idx[:, 4] = -1  # the block itself
+    nb = gather(diff_px, idx)  # (n_valid, 9, 2)
+    with warnings.catch_warnings():  # a block without valid neighbours has an all-NaN median
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(nb, axis=1)
+        spread = np.nanmedian(np.abs(nb - med[:, None, :]), axis=1)
+        r = np.abs(np.asarray(diff_px, float)[valid] - med) / (spread + eps_px)
+    enough = (idx >= 0).sum(axis=1) >= OUTLIER_MIN_NEIGHBOURS
+    out[np.flatnonzero(valid)] = enough & (np.nan_to_num(r, nan=0.0).max(axis=1) > OUTLIER_THRESHOLD)
+    return out
+
+
 @dataclass(frozen=True)
 class FrameComparison:
     """One target frame against the model."""
@@ -268,7 +338,8 @@ class FrameComparison:
     measured_px: np.ndarray  # tracked displacement
     model_px: np.ndarray  # model displacement at the same points
     valid: np.ndarray
-    region_share: dict  # region -> share of this frame's displacement misfit
+    region_share: dict  # region -> share of this frame's displacement misfit (outliers left out)
+    outlier: np.ndarray  # valid blocks that fail the normalized median test (see outliers)
 
     @property
     def difference_px(self) -> np.ndarray:
@@ -285,7 +356,7 @@ class Comparison:
     force_measured_N: np.ndarray
     force_model_N: np.ndarray
     frames: tuple[FrameComparison, ...]
-    region_share: dict  # region -> share of the whole displacement misfit (sums to 1)
+    region_share: dict  # region -> share of the whole displacement misfit (sums to 1; outliers left out)
     image_region_share: dict  # region -> share of the residual-map misfit
     force_rms_N: float
     displacement_rms_px: float
@@ -297,6 +368,11 @@ class Comparison:
                f"displacement misfit {self.displacement_rms_px:.3f} px RMS (tracking noise {self.noise_px:.3f} px)"]
         out.append("share of the displacement misfit: " + ", ".join(
             f"{k} {100 * v:.0f}%" for k, v in self.region_share.items()))
+        n_out = sum(int(np.sum(f.outlier)) for f in self.frames)
+        if n_out:
+            n_valid = sum(int(np.sum(f.valid)) for f in self.frames)
+            out.append(f"{n_out} of {n_valid} tracked blocks disagree with their neighbours (tracking outliers, "
+                       "left out of the shares)")
         return out
 
 
@@ -320,14 +396,17 @@ def compare(problem, params: dict, tracked: TrackedField | None = None, window: 
     tot = {n: 0.0 for n in names}
     img_tot = {n: 0.0 for n in names}
     all_res = []
-    for pair, tp in zip(problem.pairs, tracked.pairs):
+    for k_pair, (pair, tp) in enumerate(zip(problem.pairs, tracked.pairs)):
         w = pair.warp(pair.source_image, coarse=problem._coarse_field(pair, a))
         ls = local_similarity(w, pair.target_roi, window)
         resid = np.where(pair.mask, 1.0 - ls, np.nan)
         model = _model_at(problem, params, a, pair, tp.points_world_mm)
         diff = tp.measured_px - model
         lab = region_labels(problem, tp.points_world_mm)
-        e2 = np.where(tp.valid, (diff**2).sum(1), 0.0)
+        # a single wrong speckle match can hold most of a region's squared misfit: the
+        # shares leave the outliers out (the RMS misfit keeps them, as the diagnosis does)
+        out = outliers(diff, tp.valid, tp.grid_index, max(0.05, tracked.pair_noise(k_pair)))
+        e2 = np.where(tp.valid & ~out, (diff**2).sum(1), 0.0)
         share = {n: float(e2[lab == k].sum()) for k, n in enumerate(names)}
         s = sum(share.values()) or 1.0
         for n in names:
@@ -345,7 +424,7 @@ def compare(problem, params: dict, tracked: TrackedField | None = None, window: 
         f = problem.exp.frames[pair.target]
         frames.append(FrameComparison(pair.source, pair.target, f.time_s, f.displacement_mm, tuple(problem.roi), w,
                                       pair.target_roi, resid, tp.points_px, tp.measured_px, model, tp.valid,
-                                      {n: v / s for n, v in share.items()}))
+                                      {n: v / s for n, v in share.items()}, out))
     s = sum(tot.values()) or 1.0
     si = sum(img_tot.values()) or 1.0
     allr = np.vstack(all_res) if all_res else np.zeros((0, 2))

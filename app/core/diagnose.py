@@ -48,6 +48,8 @@ from typing import Callable
 import numpy as np
 
 from app.core.compare import Comparison, TrackedField, compare, track
+from app.core.compare import gather as _gather
+from app.core.compare import neighbourhoods as _neighbourhoods
 from app.core.effects import EFFECT_IDS, INFO, check
 from app.core.effects.model import EffectProblem, FitResult, fit, fit_hyperelastic, identify_with_effects
 from app.core.errors import Cancelled, ElastoidError
@@ -95,36 +97,6 @@ def _block_sigma(tp, noise: NoiseModel, k: int) -> np.ndarray:
     if tp.sigma_px is not None:
         return np.asarray(tp.sigma_px, float)
     return np.full(len(tp.valid), noise.sigma_px(k))
-
-
-_NEIGHBOURHOODS: dict = {}
-
-
-def _neighbourhoods(valid: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """For each valid block (in index order), the indices of the valid blocks in its
-    3 x 3 neighbourhood, itself included: (n_valid, 9), -1 where there is none.
-    Depends only on which blocks are valid, so it is built once per tracked pair
-    (the fits evaluate the misfit thousands of times)."""
-    key = (np.asarray(valid, bool).tobytes(), np.asarray(grid).tobytes())
-    idx = _NEIGHBOURHOODS.get(key)
-    if idx is None:
-        lut = {tuple(g): i for i, g in enumerate(grid) if valid[i]}
-        rows = []
-        for i, (r, cc) in enumerate(grid):
-            if valid[i]:
-                rows.append([lut.get((r + dr, cc + dc), -1) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
-        idx = np.asarray(rows, int).reshape(-1, 9)
-        if len(_NEIGHBOURHOODS) > 256:
-            _NEIGHBOURHOODS.clear()
-        _NEIGHBOURHOODS[key] = idx
-    return idx
-
-
-def _gather(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """values[idx] with NaN where idx is -1: (n_valid, 9, ...)."""
-    v = np.asarray(values, float)[np.where(idx >= 0, idx, 0)]
-    v[idx < 0] = np.nan  # a (n, 9) mask selects whole trailing rows
-    return v
 
 
 def _neighbour_mean(values: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> np.ndarray:

@@ -96,12 +96,17 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
         assert res.shape == (r1 - r0, c1 - c0)
         finite = res[np.isfinite(res)]
         assert finite.size > 0.5 * res.size and 0.0 <= finite.min() and finite.max() <= 2.0 and finite.std() > 0
-        n_valid = int(np.sum(fc.valid))
-        assert n_valid >= 5
-        for key in ("measured", "model", "difference"):
+        n_valid, n_out = int(np.sum(fc.valid)), int(np.sum(fc.outlier))
+        assert n_valid >= 5 and n_out <= 0.1 * n_valid
+        # shaft + head per valid block; the differences of the blocks that disagree with
+        # their neighbours in grey (this experiment has one in frame 1)
+        for key, n in (("measured", n_valid), ("model", n_valid), ("difference", n_valid - n_out)):
             x, y = panel.vector_curves[key].getData()
-            assert len(x) == 6 * n_valid and np.isfinite(x).all() and np.isfinite(y).all()  # shaft + head, per block
+            assert len(x) == 6 * n and np.isfinite(x).all() and np.isfinite(y).all()
             assert c0 - 40 <= x.min() and x.max() <= c1 + 40
+        x, _ = panel.outlier_curve.getData()
+        assert (0 if x is None else len(x)) == 6 * n_out
+        assert (f"{n_out} of them disagree with their neighbours" in panel.frame_note.text()) == (n_out > 0)
         mx, _ = panel.vector_curves["measured"].getData()
         assert not np.allclose(mx[1::6] - mx[0::6], 0)  # the tissue moved
         shares = [float(panel.share_table.item(i, 1).text().rstrip("%")) for i in range(panel.share_table.rowCount())]
@@ -233,6 +238,10 @@ def test_arrows_and_difference_scale():
     assert (x[0], y[0], x[1], y[1]) == (10.0, 20.0, 16.0, 28.0)
     assert x[3] != x[2] and x[5] != x[2]  # two head strokes
     fc = SimpleNamespace(difference_px=np.array([[0.1, 0.0], [0.0, 0.2], [5.0, 5.0]]), valid=np.array([1, 1, 0], bool))
+    assert auto_difference_scale(fc, 10.0) == 50.0
+    # a tracking outlier does not shrink every other arrow
+    fc = SimpleNamespace(difference_px=np.array([[0.1, 0.0], [0.0, 0.2], [5.0, 5.0]]), valid=np.ones(3, bool),
+                         outlier=np.array([0, 0, 1], bool))
     assert auto_difference_scale(fc, 10.0) == 50.0
 
 

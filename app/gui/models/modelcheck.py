@@ -333,8 +333,11 @@ def arrow_segments(points: np.ndarray, vectors: np.ndarray, scale: float = 1.0, 
 
 def auto_difference_scale(frame, target_px: float) -> float:
     """A scale (1, 2 or 5 x 10^k, at least 1) that draws the larger valid differences (95th
-    percentile) at most about ``target_px`` long."""
-    d = np.asarray(frame.difference_px)[np.asarray(frame.valid, bool)]
+    percentile, tracking outliers left out) at most about ``target_px`` long."""
+    keep = np.asarray(frame.valid, bool)
+    if getattr(frame, "outlier", None) is not None:
+        keep = keep & ~np.asarray(frame.outlier, bool)
+    d = np.asarray(frame.difference_px)[keep]
     if len(d) == 0:
         return 1.0
     m = float(np.percentile(np.linalg.norm(d, axis=1), 95))

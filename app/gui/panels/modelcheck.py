@@ -45,6 +45,7 @@ log = logging.getLogger("elastoid.gui")
 
 LOCK_REASON = "a model check is running"
 MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
+SUSPECT = "#9e9e9e"  # a difference at a block that disagrees with its neighbours
 VERDICT_BG = "#fff3c4"
 ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting"}
 
@@ -267,6 +268,11 @@ class ModelCheckPanel(Panel):
             c = pg.PlotDataItem([], [], connect="pairs", pen=pg.mkPen(color, width=width), name=name)
             self.vector_plot.addItem(c)
             self.vector_curves[key] = c
+        # the difference at a block that disagrees with its neighbours (a suspected wrong
+        # speckle match, or a sharp real misfit): drawn, but grey
+        self.outlier_curve = pg.PlotDataItem([], [], connect="pairs", pen=pg.mkPen(SUSPECT, width=1.8),
+                                             name="difference, suspected tracking outlier")
+        self.vector_plot.addItem(self.outlier_curve)
         self.vector_graphics.setMinimumWidth(200)
         maps.addWidget(self.vector_graphics)
 
@@ -718,6 +724,7 @@ class ModelCheckPanel(Panel):
                 item.clear()
             for c in self.vector_curves.values():
                 c.setData([], [])
+            self.outlier_curve.setData([], [])
             self.roi_outline.setData([], [])
             self.share_bars.setOpts(x=[], height=[])
             self.share_bars_all.setOpts(x=[], height=[])
@@ -739,14 +746,21 @@ class ModelCheckPanel(Panel):
         self.vector_background.setImage(0.35 + 0.5 * src, levels=(0, 1), autoLevels=False)
         self.roi_outline.setData([c0, c1, c1, c0, c0], [r0, r0, r1, r1, r0])
         valid = np.asarray(fc.valid, bool)
-        pts = np.asarray(fc.points_px, float)[valid]
+        outlier = np.asarray(fc.outlier, bool)
+        kept = valid & ~outlier
+        every = np.asarray(fc.points_px, float)
         scale = self.difference_scale()
-        vecs = {"measured": (np.asarray(fc.measured_px, float)[valid], 1.0),
-                "model": (np.asarray(fc.model_px, float)[valid], 1.0),
-                "difference": (np.asarray(fc.difference_px, float)[valid], scale)}
-        for key, (v, k) in vecs.items():
+        vecs = {"measured": (valid, np.asarray(fc.measured_px, float), 1.0),
+                "model": (valid, np.asarray(fc.model_px, float), 1.0),
+                "difference": (kept, np.asarray(fc.difference_px, float), scale)}
+        if self.show_boxes["difference"].isChecked():
+            self.outlier_curve.setData(*arrow_segments(every[outlier], np.asarray(fc.difference_px, float)[outlier],
+                                                       scale, head_px=2.5))
+        else:
+            self.outlier_curve.setData([], [])
+        for key, (sel, v, k) in vecs.items():
             if self.show_boxes[key].isChecked():
-                x, y = arrow_segments(pts, v, k, head_px=2.5)
+                x, y = arrow_segments(every[sel], v[sel], k, head_px=2.5)
                 self.vector_curves[key].setData(x, y)
             else:
                 self.vector_curves[key].setData([], [])
@@ -770,11 +784,15 @@ class ModelCheckPanel(Panel):
             for col, v in ((1, this[k]), (2, allf[k]), (3, 100 * cmp.image_region_share.get(n, math.nan))):
                 self.share_table.setItem(k, col, _item(f"{v:.0f}%", align=Qt.AlignRight | Qt.AlignVCenter))
         self.share_table.resizeColumnsToContents()
-        n_valid = int(valid.sum())
-        rms = float(np.sqrt(np.mean((vecs["difference"][0] ** 2).sum(1)))) if n_valid else math.nan
+        n_valid, n_out = int(valid.sum()), int(outlier.sum())
+        d_kept = np.asarray(fc.difference_px, float)[kept]
+        rms = float(np.sqrt(np.mean((d_kept**2).sum(1)))) if len(d_kept) else math.nan
+        out_text = (f"{n_out} of them disagree with their neighbours (grey differences: a wrong speckle match, "
+                    f"or a sharp misfit; left out of the shares); " if n_out else "")
         self.frame_note.setText(
             f"Frame {fc.target} (probe travel {fc.displacement_mm:.2f} mm) against frame {fc.source}: "
-            f"{n_valid} of {len(valid)} tracked blocks kept; difference {rms:.2f} px RMS, drawn {scale:g}x longer. "
+            f"{n_valid} of {len(valid)} tracked blocks kept; {out_text}difference {rms:.2f} px RMS, drawn "
+            f"{scale:g}x longer. "
             f"Residual map: 0 where the warped source matches the frame, 1 where they are unrelated. "
             f"Bars: this frame (filled), all frames (dashed).")
 
