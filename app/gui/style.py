@@ -26,9 +26,11 @@ def style_plot(plot, *, grid: bool = True) -> None:
     if grid:
         plot.showGrid(x=True, y=True, alpha=0.22)
     for name in ("left", "bottom"):
-        ax = plot.getAxis(name)
-        ax.setStyle(maxTickLevel=0 if grid else 1)
-        ax.enableAutoSIPrefix(False)
+        plot.getAxis(name).setStyle(maxTickLevel=0 if grid else 1)
+    # every axis, the hidden top and right ones too: with an SI prefix an axis sets its
+    # label's HTML again at every range change (each frame of a live plot)
+    for name in ("left", "bottom", "top", "right"):
+        plot.getAxis(name).enableAutoSIPrefix(False)
 
 
 def configure_pyqtgraph() -> None:

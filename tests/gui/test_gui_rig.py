@@ -51,6 +51,16 @@ def test_live_force_at_100_hz_drawn_at_25_hz(rig_window, qtbot):
     timer.start()
     qtbot.wait(1500)
     timer.stop()
+    # the ranges follow the data by steps (their cost: bench/live_plot.py); a user's zoom
+    # stays, and the plot's "A" button hands the range back to the data
+    vb = panel.pt.getViewBox()
+    vb.setYRange(5.0, 6.0, padding=0)  # away from the force (about 0 N)
+    qtbot.wait(300)
+    assert vb.viewRange()[1] == pytest.approx([5.0, 6.0])
+    vb.enableAutoRange(axis=vb.YAxis)
+    qtbot.wait(300)
+    lo, hi = vb.viewRange()[1]
+    assert lo < panel.controller.status.force_N < hi and hi - lo < 1.0 and not vb.state["autoRange"][1]
     data = win.rig.buffer.snapshot()
     assert len(data) >= 100
     rate = 1.0 / np.median(np.diff(data[-100:, 0]))
@@ -161,3 +171,17 @@ def test_real_ports_with_a_scanner_folder(rig_window, qtbot, tmp_path):
         rig_window.rig.disconnect()
         qtbot.waitUntil(lambda: not rig_window.rig.status.connected, timeout=10_000)
         sim.stop()
+
+
+def test_steady_range_moves_only_when_the_data_leave_it_or_shrink():
+    from app.gui.panels.rig import steady_range
+
+    first = steady_range(None, 0.0, 1.0, 0.05)
+    assert first == pytest.approx((-0.1, 1.1))  # 10% margins
+    assert steady_range(first, 0.02, 0.98, 0.05) is None  # noise inside: no change
+    assert steady_range(first, 0.5, 0.9, 0.05) is None  # a third or more of it still used
+    grown = steady_range(first, 0.0, 1.5, 0.05)
+    assert grown[0] <= 0.0 and grown[1] >= 1.5  # the data left it: it grows
+    shrunk = steady_range(first, 0.40, 0.42, 0.05)
+    assert shrunk is not None and shrunk[1] - shrunk[0] == pytest.approx(1.2 * 0.05)  # at least min_span
+    assert steady_range(first, float("nan"), 1.0, 0.05) is None

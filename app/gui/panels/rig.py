@@ -39,6 +39,23 @@ OPERATION_TEXT = {"disconnected": "not connected", "connect": "connecting...", "
                   "unlock": "unlocking", "paused": "streaming paused", "disconnect": "disconnecting"}
 
 
+def steady_range(current: tuple[float, float] | None, lo: float, hi: float,
+                 min_span: float) -> tuple[float, float] | None:
+    """A plot range for data spanning [lo, hi] that moves only when it must: None (keep
+    ``current``) while the data fit inside it and fill at least a third of it; else a
+    new range with 10% margins. A range that followed the data exactly would change
+    with every noisy sample, and pyqtgraph lays its axis out again on every change."""
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return None
+    span = max(hi - lo, min_span)
+    if current is not None:
+        c0, c1 = current
+        if c0 <= lo and hi <= c1 and (c1 - c0) <= 3 * span:
+            return None
+    mid = 0.5 * (lo + hi)
+    return mid - 0.6 * span, mid + 0.6 * span
+
+
 def list_serial_ports() -> list[str]:
     try:
         from serial.tools import list_ports
@@ -269,10 +286,15 @@ class RigPanel(Panel):
         self.pt.setLabel("left", "force", units="N")
         self.pd = plots.addPlot(row=0, col=1, title="Force vs displacement")
         self.pd.setLabel("bottom", "displacement from contact", units="mm")
+        self._pd_label = "displacement from contact"
         self.pd.setLabel("left", "force", units="N")
         for plot in (self.pt, self.pd):
             style_plot(plot)
             plot.setClipToView(True)
+        # the ranges follow the data by steps (steady_range); the time axis scrolls
+        self.pt.enableAutoRange(x=True, y=False)
+        self.pd.enableAutoRange(x=False, y=False)
+        self._ranges = {}
         # 1 px pens: a live curve is redrawn 25 times a second
         self.curve_t = self.pt.plot([], [], pen=pg.mkPen("#1f5fa8", width=1), skipFiniteCheck=True)
         self.curve_d = self.pd.plot([], [], pen=pg.mkPen("#d55e00", width=1), skipFiniteCheck=True)
@@ -504,12 +526,37 @@ class RigPanel(Panel):
         self.curve_t.setData(data[:, T], data[:, FORCE])
         disp = data[:, DISP]
         ok = np.isfinite(disp)
-        if ok.any():
-            self.pd.setLabel("bottom", "displacement from contact", units="mm")
-            self.curve_d.setData(disp[ok], data[ok, FORCE])
-        else:
-            self.pd.setLabel("bottom", "stage travel (contact not set)", units="mm")
-            self.curve_d.setData(data[:, TRAVEL], data[:, FORCE])
+        # a label set again re-lays the axis out: only when it changes, not 25 times a second
+        label = "displacement from contact" if ok.any() else "stage travel (contact not set)"
+        if label != self._pd_label:
+            self._pd_label = label
+            self.pd.setLabel("bottom", label, units="mm")
+        xd, fd = (disp[ok], data[ok, FORCE]) if ok.any() else (data[:, TRAVEL], data[:, FORCE])
+        self.curve_d.setData(xd, fd)
+        f = data[:, FORCE]
+        self._follow(self.pt, "y", float(np.nanmin(f)), float(np.nanmax(f)), 0.05)
+        self._follow(self.pd, "y", float(np.nanmin(fd)), float(np.nanmax(fd)), 0.05)
+        self._follow(self.pd, "x", float(np.nanmin(xd)), float(np.nanmax(xd)), 0.1)
+
+    def _follow(self, plot, axis: str, lo: float, hi: float, min_span: float) -> None:
+        """Move ``plot``'s ``axis`` range by steps with the data, unless the user zoomed or
+        panned it; its "A" (auto-range) button hands it back."""
+        vb = plot.getViewBox()
+        k = 0 if axis == "x" else 1
+        key = (id(plot), axis)
+        ours = self._ranges.get(key)
+        if vb.state["autoRange"][k]:  # the "A" button: follow the data again
+            vb.enableAutoRange(axis=vb.XAxis if k == 0 else vb.YAxis, enable=False)
+            ours = None
+        elif ours is not None:
+            shown = vb.viewRange()[k]
+            tol = 1e-6 * (ours[1] - ours[0])
+            if abs(shown[0] - ours[0]) > tol or abs(shown[1] - ours[1]) > tol:
+                return  # the user's zoom or pan: leave it
+        new = steady_range(ours, lo, hi, min_span)
+        if new is not None:
+            self._ranges[key] = new
+            (plot.setYRange if axis == "y" else plot.setXRange)(*new, padding=0)
 
     def _refresh_enabled(self) -> None:
         st = self.controller.status
