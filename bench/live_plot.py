@@ -47,29 +47,20 @@ def _configure(panel, mode: str) -> None:
         panel._follow = RigPanel._follow.__get__(panel)
 
 
-def _run(app, seconds: float) -> tuple[float, float, float]:
+def _run(seconds: float) -> tuple[float, float, float]:
     """(GUI-thread CPU per wall second, median and 95th percentile lateness in ms) over one run."""
     import numpy as np
-    from PySide6.QtCore import QElapsedTimer, QEventLoop, QTimer
+    from PySide6.QtCore import QEventLoop, QTimer
 
-    late, last = [], [None]
-    clock, tick = QElapsedTimer(), QTimer()
-    tick.setInterval(10)
+    from tests.gui.lateness import TimerLateness  # the GUI tests' measure
 
-    def on_tick():
-        now = clock.nsecsElapsed() / 1e6
-        if last[0] is not None:
-            late.append(max(0.0, now - last[0] - 10.0))
-        last[0] = now
-
-    tick.timeout.connect(on_tick)
+    timer = TimerLateness()
     loop = QEventLoop()
     QTimer.singleShot(int(seconds * 1000), loop.quit)
     cpu0, wall0 = time.thread_time(), time.perf_counter()
-    clock.start()
-    tick.start()
+    timer.start()
     loop.exec()
-    tick.stop()
+    late = timer.stop()
     cpu, wall = time.thread_time() - cpu0, time.perf_counter() - wall0
     return cpu / wall, float(np.percentile(late, 50)), float(np.percentile(late, 95))
 
@@ -104,12 +95,12 @@ def main(argv=None) -> int:
         QCoreApplication.processEvents(QEventLoop.AllEvents, 50)
         if time.perf_counter() > t_end:
             raise SystemExit("the simulated rig did not connect in 30 s")
-    _run(app, 1.0)  # the buffer fills, the first draws
+    _run(1.0)  # the buffer fills, the first draws
     results = {"steady": [], "follow": []}
     for _ in range(args.repeats):
         for mode in results:
             _configure(panel, mode)
-            results[mode].append(_run(app, args.seconds))
+            results[mode].append(_run(args.seconds))
     win.close()
     print(f"Live force plot, Rig panel, simulated rig at 100 Hz drawn at 25 Hz; "
           f"{args.repeats} runs of {args.seconds:g} s each, medians; platform {os.environ['QT_QPA_PLATFORM']}")

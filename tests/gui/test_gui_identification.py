@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from conftest import TEST_MESH, wait_task_done
-from PySide6.QtCore import QElapsedTimer, QTimer
+from lateness import TimerLateness
 
 
 def _prepare(win, experiment, *, starts=(20.0, 40.0), max_evaluations=60, cost="joint"):
@@ -113,26 +113,12 @@ def test_close_the_window_mid_evaluations(make_window, tiny_experiment, qtbot):
 def test_event_loop_stays_responsive(window, tiny_experiment, qtbot, record_property):
     """A 10 ms timer records how late it fires during a whole identification (model build included)."""
     panel = _prepare(window, tiny_experiment, starts=(10, 60), max_evaluations=100)
-    lateness_ms: list[float] = []
-    clock = QElapsedTimer()
-    timer = QTimer()
-    timer.setInterval(10)
-    last = [None]
-
-    def tick():
-        now = clock.nsecsElapsed() / 1e6
-        if last[0] is not None:
-            lateness_ms.append(max(0.0, now - last[0] - 10.0))
-        last[0] = now
-
-    timer.timeout.connect(tick)
-    clock.start()
+    timer = TimerLateness()
     timer.start()
     panel.run()
     wait_task_done(qtbot, panel, 180)
-    timer.stop()
+    lat = timer.stop()
     assert window.session.outcome is not None
-    lat = np.asarray(lateness_ms)
     p50, p95, worst = np.percentile(lat, 50), np.percentile(lat, 95), lat.max()
     record_property("event_loop_lateness_p95_ms", round(float(p95), 2))
     print(f"\nevent-loop lateness over {len(lat)} ticks: median {p50:.1f} ms, p95 {p95:.1f} ms, max {worst:.1f} ms")

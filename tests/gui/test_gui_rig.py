@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from PySide6.QtCore import QElapsedTimer, QTimer
+from lateness import TimerLateness
 
 from app.devices.sim import ptys_available
 
@@ -36,21 +36,10 @@ def test_live_force_at_100_hz_drawn_at_25_hz(rig_window, qtbot):
     assert "simulated" in panel.conn_state.text().lower()
     assert panel.stage_port.currentText().startswith(("/dev/", "socket://"))
     # measure the event loop while the 100 Hz stream is drawn
-    lateness = []
-    clock, timer, last = QElapsedTimer(), QTimer(), [None]
-    timer.setInterval(10)
-
-    def tick():
-        now = clock.nsecsElapsed() / 1e6
-        if last[0] is not None:
-            lateness.append(max(0.0, now - last[0] - 10.0))
-        last[0] = now
-
-    timer.timeout.connect(tick)
-    clock.start()
+    timer = TimerLateness()
     timer.start()
     qtbot.wait(1500)
-    timer.stop()
+    lateness = timer.stop()
     # the ranges follow the data by steps (their cost: bench/live_plot.py); a user's zoom
     # stays, and the plot's "A" button hands the range back to the data
     vb = panel.pt.getViewBox()

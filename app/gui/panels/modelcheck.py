@@ -749,21 +749,19 @@ class ModelCheckPanel(Panel):
         outlier = np.asarray(fc.outlier, bool)
         kept = valid & ~outlier
         every = np.asarray(fc.points_px, float)
+        diff = np.asarray(fc.difference_px, float)
         scale = self.difference_scale()
-        vecs = {"measured": (valid, np.asarray(fc.measured_px, float), 1.0),
-                "model": (valid, np.asarray(fc.model_px, float), 1.0),
-                "difference": (kept, np.asarray(fc.difference_px, float), scale)}
-        if self.show_boxes["difference"].isChecked():
-            self.outlier_curve.setData(*arrow_segments(every[outlier], np.asarray(fc.difference_px, float)[outlier],
-                                                       scale, head_px=2.5))
-        else:
-            self.outlier_curve.setData([], [])
-        for key, (sel, v, k) in vecs.items():
-            if self.show_boxes[key].isChecked():
-                x, y = arrow_segments(every[sel], v[sel], k, head_px=2.5)
-                self.vector_curves[key].setData(x, y)
+        # (curve, the check box that shows it, blocks, vectors, length scale); the outliers'
+        # differences go with the difference box, in grey
+        arrows = ((self.vector_curves["measured"], "measured", valid, np.asarray(fc.measured_px, float), 1.0),
+                  (self.vector_curves["model"], "model", valid, np.asarray(fc.model_px, float), 1.0),
+                  (self.vector_curves["difference"], "difference", kept, diff, scale),
+                  (self.outlier_curve, "difference", outlier, diff, scale))
+        for curve, box, sel, v, k in arrows:
+            if self.show_boxes[box].isChecked():
+                curve.setData(*arrow_segments(every[sel], v[sel], k, head_px=2.5))
             else:
-                self.vector_curves[key].setData([], [])
+                curve.setData([], [])
         self.vector_plot.getViewBox().setRange(xRange=(c0, c1), yRange=(r0, r1), padding=0.02)
         # each region's share of the misfit
         names = list(cmp.region_share)
@@ -785,7 +783,7 @@ class ModelCheckPanel(Panel):
                 self.share_table.setItem(k, col, _item(f"{v:.0f}%", align=Qt.AlignRight | Qt.AlignVCenter))
         self.share_table.resizeColumnsToContents()
         n_valid, n_out = int(valid.sum()), int(outlier.sum())
-        d_kept = np.asarray(fc.difference_px, float)[kept]
+        d_kept = diff[kept]
         rms = float(np.sqrt(np.mean((d_kept**2).sum(1)))) if len(d_kept) else math.nan
         out_text = (f"{n_out} of them disagree with their neighbours (grey differences: a wrong speckle match, "
                     f"or a sharp misfit; left out of the shares); " if n_out else "")

@@ -527,11 +527,12 @@ class RigPanel(Panel):
         disp = data[:, DISP]
         ok = np.isfinite(disp)
         # a label set again re-lays the axis out: only when it changes, not 25 times a second
-        label = "displacement from contact" if ok.any() else "stage travel (contact not set)"
+        contact = bool(ok.any())
+        label = "displacement from contact" if contact else "stage travel (contact not set)"
         if label != self._pd_label:
             self._pd_label = label
             self.pd.setLabel("bottom", label, units="mm")
-        xd, fd = (disp[ok], data[ok, FORCE]) if ok.any() else (data[:, TRAVEL], data[:, FORCE])
+        xd, fd = (disp[ok], data[ok, FORCE]) if contact else (data[:, TRAVEL], data[:, FORCE])
         self.curve_d.setData(xd, fd)
         f = data[:, FORCE]
         self._follow(self.pt, "y", float(np.nanmin(f)), float(np.nanmax(f)), 0.05)
