@@ -56,45 +56,83 @@ from app.core.solver import SymmetricFactor, single_threaded_blas
 
 
 # ---------------------------------------------------------------------------
-# the material law, on arrays of deformation gradients (..., 3, 3)
+# the material law, on deformation gradients stored by component (9, n)
 # ---------------------------------------------------------------------------
 
 
-def _det_cof(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """det F and the cofactor matrix (J F^-T) of every 3 x 3 matrix."""
-    a, b, c = F[..., 0, 0], F[..., 0, 1], F[..., 0, 2]
-    d, e, f = F[..., 1, 0], F[..., 1, 1], F[..., 1, 2]
-    g, h, i = F[..., 2, 0], F[..., 2, 1], F[..., 2, 2]
-    cof = np.empty_like(F)
-    cof[..., 0, 0] = e * i - f * h
-    cof[..., 0, 1] = f * g - d * i
-    cof[..., 0, 2] = d * h - e * g
-    cof[..., 1, 0] = c * h - b * i
-    cof[..., 1, 1] = a * i - c * g
-    cof[..., 1, 2] = b * g - a * h
-    cof[..., 2, 0] = b * f - c * e
-    cof[..., 2, 1] = c * d - a * f
-    cof[..., 2, 2] = a * e - b * d
-    J = a * cof[..., 0, 0] + b * cof[..., 0, 1] + c * cof[..., 0, 2]
+def _by_component(F: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) matrices stored by component: (9, n), F_00, F_01, ..., F_22."""
+    return np.ascontiguousarray(np.asarray(F, float).reshape(-1, 9).T)
+
+
+def _cofactors(Fc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """det F (n,) and the cofactor matrix J F^-T (9, n) of matrices stored by
+    component (see :func:`_law`)."""
+    a, b, c, d, e, f, g, h, i = Fc
+    cof = np.empty_like(Fc)
+    for k, (x1, y1, x2, y2) in enumerate(((e, i, f, h), (f, g, d, i), (d, h, e, g), (c, h, b, i), (a, i, c, g),
+                                          (b, g, a, h), (b, f, c, e), (c, d, a, f), (a, e, b, d))):
+        np.multiply(x1, y1, out=cof[k])
+        cof[k] -= x2 * y2
+    J = a * cof[0]
+    J += b * cof[1]
+    J += c * cof[2]
     return J, cof
+
+
+def _det_cof(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """det F and the cofactor matrix (J F^-T) of every 3 x 3 matrix (..., 3, 3)."""
+    J, cof = _cofactors(_by_component(F))
+    return J.reshape(F.shape[:-2]), cof.T.reshape(F.shape)
+
+
+def _law(Fc: np.ndarray, mu, lam, weights=None, *, identity_added: bool = True):
+    """The law on deformation gradients stored by component: ``Fc`` (9, n) holds
+    F_00, F_01, ..., F_22 (row-major), each a contiguous row, so every operation
+    runs over long arrays (about 4x faster than on (n, 3, 3) stacks at paper
+    size). Returns (P (9, n), W (n,)), P times ``weights`` when given (the
+    quadrature weights, so that the internal force is one product with the
+    gradient operator's transpose). ``identity_added=False``: ``Fc`` holds the
+    displacement gradient F - I, and is turned into F in place."""
+    if not identity_added:
+        Fc[0] += 1.0
+        Fc[4] += 1.0
+        Fc[8] += 1.0
+    J, cof = _cofactors(Fc)  # cof = J F^-T by component
+    if not np.all(J > 0):
+        raise ValueError("inverted element (det F <= 0)")
+    lnJ = np.log(J)
+    mu = np.asarray(mu, float)
+    lam = np.asarray(lam, float)
+    W = np.einsum("kn,kn->n", Fc, Fc)
+    W -= 3.0
+    W *= 0.5 * mu
+    W += lnJ * (0.5 * lam * lnJ - mu)
+    # P = mu F + (lam ln J - mu) F^-T,  F^-T = cof / J
+    s = (lam * lnJ - mu) / J
+    wmu = mu if weights is None else weights * mu
+    if weights is not None:
+        s *= weights
+    P = Fc * wmu
+    cof *= s
+    P += cof
+    return P, W
 
 
 def neo_hookean_stress(F: np.ndarray, mu, lam) -> np.ndarray:
     """First Piola-Kirchhoff stress P (..., 3, 3) in kPa; mu, lam broadcast over F's leading axes."""
-    J, cof = _det_cof(F)
-    if np.any(J <= 0):
-        raise ValueError("inverted element (det F <= 0)")
-    FinvT = cof / J[..., None, None]
-    mu = np.asarray(mu, float)[..., None, None]
-    lam = np.asarray(lam, float)[..., None, None]
-    return mu * (F - FinvT) + (lam * np.log(J)[..., None, None]) * FinvT
+    F = np.asarray(F, float)
+    lead = F.shape[:-2]
+    P, _ = _law(_by_component(F), np.broadcast_to(mu, lead).ravel(), np.broadcast_to(lam, lead).ravel())
+    return P.T.reshape(F.shape)
 
 
 def neo_hookean_energy(F: np.ndarray, mu, lam) -> np.ndarray:
-    """Strain energy density W (...) in kPa (= mJ / mm^3 x 1e-3... i.e. kPa)."""
-    J, _ = _det_cof(F)
-    lnJ = np.log(J)
-    return 0.5 * mu * (np.einsum("...ij,...ij->...", F, F) - 3.0) - mu * lnJ + 0.5 * lam * lnJ**2
+    """Strain energy density W (...) in kPa."""
+    F = np.asarray(F, float)
+    lead = F.shape[:-2]
+    _, W = _law(_by_component(F), np.broadcast_to(mu, lead).ravel(), np.broadcast_to(lam, lead).ravel())
+    return W.reshape(lead)
 
 
 def uniaxial_stress_kPa(stretch: float, youngs_kPa: float, nu: float) -> tuple[float, float]:
@@ -230,6 +268,21 @@ class _Group:
         self.dofs = dofs[self.idx]  # (m, 30)
         self.pos = None  # positions of its element entries in the tangent's upper triangle (set by the model)
 
+    def gradient_entries(self, first_point: int, n_points: int):
+        """COO entries (rows, columns, values) of this group's block of the gradient
+        operator: row ``c * n_points + p`` is the displacement gradient's component
+        c = 3 i + J at quadrature point p (this group's points numbered from
+        ``first_point``, element-major)."""
+        m, q = self.wV.shape
+        point = first_point + np.arange(m * q).reshape(m, q, 1)
+        rows, cols, vals = [], [], []
+        for i in range(3):
+            for J in range(3):
+                rows.append(np.broadcast_to((3 * i + J) * n_points + point, (m, q, 10)).ravel())
+                cols.append(np.broadcast_to(self.dofs[:, None, i::3], (m, q, 10)).ravel())
+                vals.append(self.dN[..., J].ravel())
+        return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+
     def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
         """F (m, q, 3, 3) at the quadrature points."""
         Ue = u[self.dofs].reshape(len(self.idx), -1, 3)  # (m, 10, 3)
@@ -315,6 +368,7 @@ class HyperelasticModel:
         self._groups = [_Group(idx, bary, w, space, self.dofs) for idx, bary, w in
                         ((rest, QUAD_BARY, QUAD_W), (self.edge, EDGE_BARY, EDGE_W)) if len(idx)]
         self._setup_pattern()
+        self._setup_gradient()
         self._cache: dict[float, _Preconditioner] = {}
         self._scratch: _Preconditioner | None = None  # a spare factor for trial tangents
         self._equilibria: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # travel -> (ratios, u)
@@ -322,6 +376,22 @@ class HyperelasticModel:
         self.n_back_solves = 0
         self.n_residuals = 0
         self.trace: list = []
+
+    # --- the residual: one sparse product each way -----------------------------
+    def _setup_gradient(self):
+        """The gradient operator G (9 n_points, n_dofs), u -> the displacement
+        gradient at every quadrature point by component, and the points' weights
+        and elements. The internal force is G^T (w P(I + G u)): two sparse products
+        and the law on contiguous components, about twice as fast as the element
+        by element einsums and scatter it replaced (54 -> 25 ms at paper size)."""
+        sizes = [g.wV.size for g in self._groups]
+        n_points, first = sum(sizes), np.cumsum([0] + sizes)
+        parts = [g.gradient_entries(int(s), n_points) for g, s in zip(self._groups, first)]
+        rows, cols, vals = (np.concatenate(x) for x in zip(*parts))
+        self._G = sp.csr_matrix((vals, (rows, cols)), shape=(9 * n_points, self.n_dofs))
+        self._G.sort_indices()
+        self._w = np.concatenate([g.wV.ravel() for g in self._groups])
+        self._point_elem = np.concatenate([np.repeat(g.idx, g.wV.shape[1]) for g in self._groups])
 
     # --- sparsity: element entries -> upper triangle of the free-free block -----
     def _setup_pattern(self):
@@ -361,21 +431,16 @@ class HyperelasticModel:
         """f_int (n_dofs,) in mN: the derivative of the stored energy; with
         ``with_energy``, (f_int, stored energy) from one deformation gradient."""
         self.n_residuals += 1
-        f, energy = np.zeros(self.n_dofs), 0.0
-        for g in self._groups:
-            F = g.deformation_gradient(u)
-            mu, lam = mu_e[g.idx, None], lam_e[g.idx, None]
-            P = neo_hookean_stress(F, mu, lam)
-            fe = np.einsum("mq,mqiJ,mqaJ->mai", g.wV, P, g.dN, optimize=True)
-            f += np.bincount(g.dofs.ravel(), weights=fe.ravel(), minlength=self.n_dofs)
-            if with_energy:
-                energy += float(np.sum(g.wV * neo_hookean_energy(F, mu, lam)))
-        return (f, energy) if with_energy else f
+        P, W = _law((self._G @ u).reshape(9, -1), mu_e[self._point_elem], lam_e[self._point_elem], self._w,
+                    identity_added=False)
+        f = self._G.T @ P.ravel()
+        return (f, float(self._w @ W)) if with_energy else f
 
     def energy(self, u: np.ndarray, mu_e: np.ndarray, lam_e: np.ndarray) -> float:
         """Stored energy in kPa mm^3 (= uJ)."""
-        return sum(float(np.sum(g.wV * neo_hookean_energy(g.deformation_gradient(u), mu_e[g.idx, None],
-                                                          lam_e[g.idx, None]))) for g in self._groups)
+        _, W = _law((self._G @ u).reshape(9, -1), mu_e[self._point_elem], lam_e[self._point_elem],
+                    identity_added=False)
+        return float(self._w @ W)
 
     def tangent_upper(self, u, mu_e, lam_e) -> np.ndarray:
         """Values of the upper triangle of the free-free tangent (CSR order)."""
