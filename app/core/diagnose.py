@@ -49,6 +49,7 @@ import numpy as np
 
 from app.core.compare import Comparison, TrackedField, compare, track
 from app.core.compare import gather as _gather
+from app.core.compare import neighbour_median
 from app.core.compare import neighbourhoods as _neighbourhoods
 from app.core.effects import EFFECT_IDS, INFO, check
 from app.core.effects.model import EffectProblem, FitResult, fit, fit_hyperelastic, identify_with_effects
@@ -113,7 +114,7 @@ def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> tu
     idx = _neighbourhoods(valid, grid)
     if len(idx) == 0:
         return np.zeros((0, 2)), np.zeros(0)
-    return np.nanmedian(_gather(residual, idx), axis=1).reshape(-1, 2), (idx >= 0).sum(axis=1).astype(float)
+    return neighbour_median(_gather(residual, idx)).reshape(-1, 2), (idx >= 0).sum(axis=1).astype(float)
 
 
 MATERIAL_FRACTION = 0.3  # of the current model's error an effect must remove to be material
