@@ -85,3 +85,19 @@ def test_the_hold_sentence_reads_the_way_the_force_went():
         "the force holds steady (within 0.5%) during the 10 s hold")
     rising = model * np.where(t > 10.0, 1.0 + 0.05 * (t - 10.0) / 10.0, 1.0)
     assert evidence(t, d, rising, model).startswith("the force rises by 5% during the 10 s hold")
+
+
+def test_the_boundary_sentences_say_which_way_the_misfit_moved():
+    """On the demo, probe-slip read "brings the displacement misfit from 0.92 to
+    0.92 px"; a fit that made it worse read "brings ... from 0.92 to 1.84 px"."""
+    import numpy as np
+
+    from app.core.effects.boundary import evidence as boundary_evidence
+
+    lateral, depth = np.array([0.1, 0.2, 0.0, 0.1]), np.array([1.0, 2.0, 3.0, 4.0])
+    assert boundary_evidence("probe-slip", lateral, depth, 0.1, 0.921, 0.918).endswith(
+        "letting it slide, the displacement misfit stays at 0.92 px")
+    assert boundary_evidence("sliding-bottom", lateral, depth, 0.1, 0.92, 1.84).endswith(
+        "letting it slide, the displacement misfit rises from 0.92 to 1.84 px")
+    assert boundary_evidence("probe-slip", lateral, depth, 0.1, 1.40, 0.61).endswith(
+        "letting it slide, the displacement misfit falls from 1.40 to 0.61 px")

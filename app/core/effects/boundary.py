@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.effects import misfit_change
 from app.core.forward import Boundary
 
 
@@ -43,4 +44,4 @@ def evidence(effect: str, lateral_misfit_px: np.ndarray, depth_mm: np.ndarray, s
     moves = (f"moves sideways {abs(spread):.2f} mm {direction} more than the model" if abs(spread) >= 0.005
              else "moves sideways as the model says (within 0.01 mm)")
     return (f"{where} the tissue {moves}, which holds it "
-            f"{what}; letting it slide brings the displacement misfit from {rms_before_px:.2f} to {rms_after_px:.2f} px")
+            f"{what}; letting it slide, the displacement misfit {misfit_change(rms_before_px, rms_after_px)}")
