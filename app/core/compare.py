@@ -296,7 +296,7 @@ def neighbour_median(v: np.ndarray) -> np.ndarray:
     s = np.sort(v, axis=1)  # NaNs sort last
     k = (~np.isnan(v)).sum(axis=1, keepdims=True)
     lo = np.take_along_axis(s, np.maximum((k - 1) // 2, 0), axis=1)
-    hi = np.take_along_axis(s, np.maximum(k // 2, 0), axis=1)
+    hi = np.take_along_axis(s, k // 2, axis=1)
     med = ((lo + hi) / 2)[:, 0]
     med[k[:, 0] == 0] = np.nan
     return med
