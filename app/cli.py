@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import threading
 import time
@@ -68,12 +69,47 @@ class TerminalProgress:
             sys.stderr.flush()
 
 
-def _write_json(dest: str, payload: dict) -> None:
-    text = json.dumps(payload, indent=2)
+def _check_json_dest(dest: str | None) -> None:
+    """Before any computation: a --json FILE that cannot be written is reported
+    now, not after the minutes (or, in a batch, hours) of the run."""
+    if not dest or dest == "-":
+        return
+    path = Path(dest)
+    if path.is_dir():
+        raise ElastoidError(f"--json: {dest} is a folder; give a file name, e.g. {path / 'result.json'}")
+    folder = path.parent
+    if not folder.is_dir():
+        raise ElastoidError(f"--json: cannot write {dest}: the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise ElastoidError(f"--json: cannot write {dest}: permission denied")
+
+
+def _write_json(dest: str, payload: dict) -> bool:
+    """Write the result (to standard output for "-"). A file is written whole or
+    not at all (a temporary file renamed into place), so a script never reads half
+    a result. When it cannot be written after all (disk full, the folder gone),
+    the result goes to standard output instead, with the reason on standard
+    error, and False is returned: the run's result is not lost."""
+    text = json.dumps(payload, indent=2) + "\n"
     if dest == "-":
-        sys.stdout.write(text + "\n")
-    else:
-        Path(dest).write_text(text + "\n", encoding="utf-8")
+        sys.stdout.write(text)
+        return True
+    path = Path(dest)
+    part = path.with_name(path.name + ".part")
+    try:
+        part.write_text(text, encoding="utf-8")
+        os.replace(part, path)
+    except OSError as exc:
+        try:
+            part.unlink()
+        except OSError:
+            pass
+        sys.stdout.write(text)
+        sys.stdout.flush()
+        print(f"elastoid: --json: could not write {dest} ({exc.strerror or exc}); the result is on standard output "
+              "above", file=sys.stderr)
+        return False
+    return True
 
 
 def _check_effects(effects: list[str]) -> None:
@@ -94,6 +130,7 @@ def cmd_identify(args) -> int:
 
     effects = [e for e in (args.effects or "").split(",") if e]
     _check_effects(effects)
+    _check_json_dest(args.json)
     exp = read_experiment(args.experiment)
     starts = _floats(args.starts, what="--starts")
     bar = TerminalProgress(not args.quiet, len(starts))
@@ -127,8 +164,7 @@ def cmd_identify(args) -> int:
     result.experiment = str(args.experiment)
     payload = result.to_json_dict()
     ref = exp.reference_moduli_kPa(args.nu)
-    if args.json:
-        _write_json(args.json, payload)
+    written = _write_json(args.json, payload) if args.json else True
     if args.json != "-":
         print(f"{exp.name}: {result.evaluations} evaluations in {result.seconds:.1f} s, cost {args.cost}")
         for name, val in result.parameters.items():
@@ -142,7 +178,7 @@ def cmd_identify(args) -> int:
         if result.identifiability is not None:
             for line in result.identifiability.lines():
                 print(f"  {line}")
-    return 0
+    return 0 if written else 1
 
 
 def _mesh_settings(args, exp):
@@ -167,6 +203,7 @@ def cmd_diagnose(args) -> int:
         for e in candidates:
             if e not in EFFECT_IDS:
                 raise ElastoidError(f"--candidates: unknown effect {e!r}; the ids are {', '.join(EFFECT_IDS)}")
+    _check_json_dest(args.json)
     exp = read_experiment(args.experiment)
     bar = TerminalProgress(not args.quiet, 1)
     t0 = time.perf_counter()
@@ -178,13 +215,12 @@ def cmd_diagnose(args) -> int:
     payload = result.to_json_dict()
     payload["experiment"] = str(args.experiment)
     payload["seconds"] = round(time.perf_counter() - t0, 2)
-    if args.json:
-        _write_json(args.json, payload)
+    written = _write_json(args.json, payload) if args.json else True
     if args.json != "-":
         print(f"{exp.name}: diagnosis in {time.perf_counter() - t0:.1f} s")
         for line in result.lines():
             print(f"  {line}")
-    return 0
+    return 0 if written else 1
 
 
 def cmd_simulate(args) -> int:

@@ -86,3 +86,44 @@ def test_simulate_a_hidden_inclusion(tmp_path):
     assert truth["effects"] == ["inclusion"] and truth["moduli_kPa"]["H"] == 60.0
     assert truth["hidden_regions"][0]["center_mm"] == [28.0, 20.0, 12.0]
     assert read_experiment(out).specimen.region_names == ("B", "A")  # the experiment does not describe it
+
+
+@pytest.mark.parametrize("command", ["identify", "diagnose"])
+def test_a_json_destination_that_cannot_be_written_is_refused_before_the_run(tmp_path, capsys, monkeypatch, command):
+    """A batch must not run for hours to fail at its last line: the --json file's
+    folder is checked first, and the run never starts."""
+    import app.core.diagnose
+    import app.core.identify
+
+    def must_not_run(*a, **k):
+        raise AssertionError("the run started")
+
+    monkeypatch.setattr(app.core.identify, "identify", must_not_run)
+    monkeypatch.setattr(app.core.diagnose, "diagnose", must_not_run)
+    demo = str(ROOT / "resources" / "demo")
+    missing = tmp_path / "no-such-folder" / "result.json"
+    assert main([command, demo, "--json", str(missing), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--json" in err and str(missing) in err and "does not exist" in err and "Traceback" not in err
+    assert main([command, demo, "--json", str(tmp_path), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--json" in err and "is a folder" in err
+    assert not missing.parent.exists()
+
+
+def test_a_result_that_cannot_be_written_at_the_end_is_not_lost(tmp_path, capsys):
+    """The folder can go (or the disk fill) during a run: the result then goes to
+    standard output, the reason to standard error; a file is never half written."""
+    from app.cli import _write_json
+
+    payload = {"verdict": "viscoelastic", "candidates": [{"effect": "viscoelastic", "score": 12.5}]}
+    gone = tmp_path / "gone" / "result.json"
+    assert _write_json(str(gone), payload) is False
+    out, err = capsys.readouterr()
+    assert json.loads(out) == payload
+    assert str(gone) in err and "standard output" in err
+    dest = tmp_path / "result.json"
+    dest.write_text("an older result\n")
+    assert _write_json(str(dest), payload) is True
+    assert json.loads(dest.read_text()) == payload
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.json"]  # no .part left behind
