@@ -126,7 +126,6 @@ def _check_effects(effects: list[str]) -> None:
 def cmd_identify(args) -> int:
     from app.core.experiment import read_experiment
     from app.core.identify import Problem, identify
-    from app.core.mesh import MeshSettings
 
     effects = [e for e in (args.effects or "").split(",") if e]
     _check_effects(effects)
@@ -134,22 +133,20 @@ def cmd_identify(args) -> int:
     exp = read_experiment(args.experiment)
     starts = _floats(args.starts, what="--starts")
     bar = TerminalProgress(not args.quiet, len(starts))
-    settings = None
-    if args.mesh_edge_mm or args.probe_edge_mm:
-        from app.core.mesh import auto_settings
-
-        auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
-        settings = MeshSettings(edge_mm=args.mesh_edge_mm or auto.edge_mm,
-                                probe_edge_mm=args.probe_edge_mm or auto.probe_edge_mm)
+    settings = _mesh_settings(args, exp)
     frames = [int(x) for x in args.frames.split(",")] if args.frames else None
     roi = [int(x) for x in _floats(args.roi, 4, "--roi")] if args.roi else None
+    inclusion = None
     if effects:
-        from app.core.effects.model import EffectProblem, identify_with_effects
+        from app.core.diagnose import current_model, locate_inclusion
+        from app.core.effects.model import identify_with_effects
 
-        problem = EffectProblem.from_experiment(exp, effects=effects, mesh_settings=settings, roi_px=roi,
-                                                frames=frames, cost=args.cost, nu=args.nu, similarity=args.similarity,
-                                                progress=bar.message)
+        options = dict(roi_px=roi, frames=frames, cost=args.cost, nu=args.nu, similarity=args.similarity)
         try:
+            if "inclusion" in effects:  # located from the misfit of the model without it, as a diagnosis does
+                inclusion = locate_inclusion(exp, effects, mesh_settings=settings, progress=bar.message, **options)
+            problem = current_model(exp, effects, mesh_settings=settings, inclusion=inclusion, progress=bar.message,
+                                    **options)
             result = identify_with_effects(problem, starts, progress=bar)
         finally:
             bar.done()
@@ -163,10 +160,17 @@ def cmd_identify(args) -> int:
     result.effects = tuple(effects)
     result.experiment = str(args.experiment)
     payload = result.to_json_dict()
+    if inclusion is not None:  # its place is a parameter too (as in a diagnosis' candidate)
+        payload["parameters"] = {**payload["parameters"], "center_mm": inclusion["center_mm"],
+                                 "radius_mm": inclusion["radius_mm"]}
+        payload["inclusion"] = inclusion
     ref = exp.reference_moduli_kPa(args.nu)
     written = _write_json(args.json, payload) if args.json else True
     if args.json != "-":
         print(f"{exp.name}: {result.evaluations} evaluations in {result.seconds:.1f} s, cost {args.cost}")
+        if inclusion is not None:
+            print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit): centre "
+                  f"({', '.join(f'{c:.1f}' for c in inclusion['center_mm'])}) mm, radius {inclusion['radius_mm']:.1f} mm")
         for name, val in result.parameters.items():
             region = name[2:-4] if name.startswith("E_") else ""
             extra = f"   (reference {ref[region]:.1f} kPa)" if region in ref else ""
@@ -203,12 +207,28 @@ def cmd_diagnose(args) -> int:
         for e in candidates:
             if e not in EFFECT_IDS:
                 raise ElastoidError(f"--candidates: unknown effect {e!r}; the ids are {', '.join(EFFECT_IDS)}")
+    # a candidate already in the model is not tried; with none left there is nothing to diagnose
+    left = [e for e in (candidates if candidates is not None else EFFECT_IDS) if e not in effects]
+    if not left:
+        what = "every effect" if candidates is None else ", ".join(candidates)
+        raise ElastoidError(f"--candidates: {what} already in the current model (--effects {','.join(effects)}): "
+                            "nothing to try")
+    dropped = [e for e in (candidates or ()) if e in effects]
+    if dropped and not args.quiet:
+        print(f"elastoid: --candidates: {', '.join(dropped)} already in the current model, not tried",
+              file=sys.stderr)
     _check_json_dest(args.json)
     exp = read_experiment(args.experiment)
     bar = TerminalProgress(not args.quiet, 1)
     t0 = time.perf_counter()
+    settings = _mesh_settings(args, exp)
     try:
-        result = diagnose(exp, effects=effects, candidates=candidates, mesh_settings=_mesh_settings(args, exp),
+        inclusion = None
+        if "inclusion" in effects:  # the current model's inclusion, located as a diagnosis does
+            from app.core.diagnose import locate_inclusion
+
+            inclusion = locate_inclusion(exp, effects, mesh_settings=settings, progress=bar.message)
+        result = diagnose(exp, effects=effects, candidates=candidates, mesh_settings=settings, inclusion=inclusion,
                           progress=bar.message)
     finally:
         bar.done()

@@ -4,6 +4,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from app.cli import main
@@ -127,3 +128,57 @@ def test_a_result_that_cannot_be_written_at_the_end_is_not_lost(tmp_path, capsys
     assert _write_json(str(dest), payload) is True
     assert json.loads(dest.read_text()) == payload
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.json"]  # no .part left behind
+
+
+def test_diagnose_says_when_its_candidates_are_already_in_the_model(capsys, monkeypatch):
+    """--candidates that --effects already holds: nothing to try is an input error
+    (not a silent 'verdict: none'), and one of several is named as not tried."""
+    import app.core.diagnose
+
+    def must_not_run(*a, **k):
+        raise AssertionError("the run started")
+
+    monkeypatch.setattr(app.core.diagnose, "diagnose", must_not_run)
+    demo = str(ROOT / "resources" / "demo")
+    assert main(["diagnose", demo, "--effects", "viscoelastic", "--candidates", "viscoelastic"]) == 2
+    err = capsys.readouterr().err
+    assert "--candidates: viscoelastic already in the current model" in err and "nothing to try" in err
+    every = "hyperelastic,viscoelastic,sliding-bottom,probe-slip,compressibility,inclusion"
+    assert main(["diagnose", demo, "--effects", every]) == 2
+    assert "every effect already in the current model" in capsys.readouterr().err
+    with pytest.raises(AssertionError, match="the run started"):  # one left to try: the run goes on
+        main(["diagnose", demo, "--effects", "viscoelastic", "--candidates", "viscoelastic,probe-slip"])
+    assert "viscoelastic already in the current model, not tried" in capsys.readouterr().err
+
+
+def test_identify_with_the_inclusion_effect_locates_meshes_and_fits_it(tmp_path_factory, monkeypatch, capsys):
+    """`identify --effects inclusion` used to fit the model without any inclusion
+    and call it one. Now the inclusion is located from the misfit as a diagnosis
+    does, meshed as a new region and fitted: its modulus, centre and radius are
+    parameters of the JSON. The hidden-inclusion case (seed 13: a 4 mm sphere of
+    60 kPa in 15 kPa tissue), on the tests' identification mesh, whose located
+    sphere's mesh is committed."""
+    from app import cli
+    from app.core.simulate import read_truth
+    from tests.core import synthetic
+
+    monkeypatch.setattr(cli, "_mesh_settings", lambda args, exp: synthetic.DIAGNOSE_ID_MESH)
+    exp = synthetic.diagnose_experiment(tmp_path_factory, "inclusion")
+    truth = read_truth(exp.path)
+    hidden = truth["hidden_regions"][0]
+    dest = exp.path.parent / "result.json"
+    assert main(["identify", str(exp.path), "--effects", "inclusion", "--starts", "10,30", "--json", str(dest),
+                 "--quiet"]) == 0
+    result = json.loads(dest.read_text())
+    assert result["effects"] == ["inclusion"]
+    inc = result["inclusion"]
+    printed = capsys.readouterr().out
+    assert f"inclusion {inc['name']} (not in the experiment, located from the misfit): centre" in printed
+    assert f"E_{inc['name']}_kPa =" in printed
+    p = result["parameters"]
+    assert set(p) == {"E_B_kPa", "E_A_kPa", f"E_{inc['name']}_kPa", "center_mm", "radius_mm"}
+    assert p["center_mm"] == inc["center_mm"] and p["radius_mm"] == inc["radius_mm"]
+    assert np.linalg.norm(np.subtract(inc["center_mm"], hidden["center_mm"])) < 3.0, inc
+    assert p[f"E_{inc['name']}_kPa"] > 2.0 * p["E_B_kPa"], p  # stiffer than its tissue, as the truth's
+    for region in ("B", "A"):
+        assert p[f"E_{region}_kPa"] == pytest.approx(truth["moduli_kPa"][region], rel=0.10), p

@@ -589,6 +589,50 @@ def _model_like(problem: EffectProblem, effects, near_kPa, cancel, **kw) -> Effe
                                          cancel=cancel, near_kPa=near_kPa, **kw)
 
 
+def _scan(problem: EffectProblem, params: dict, tracked, noise, lik, cancel):
+    """The inclusion scan (app.core.effects.inclusion.scan) of the misfit at
+    ``params``, with each tracked block's noise: an InclusionGuess, or None."""
+    from app.core.effects.inclusion import scan
+
+    return scan(problem, params, tracked, lik.model_px(params),
+                [_block_sigma(tp, noise, k)[tp.valid] for k, tp in enumerate(tracked.pairs)], cancel=cancel)
+
+
+def locate_inclusion(exp, effects=(), *, mesh_settings=None, max_evaluations: int = 200, progress=None, cancel=None,
+                     **kw) -> dict:
+    """Where the undescribed inclusion of a model asked for with the ``inclusion``
+    effect is, when nothing has located it yet (``elastoid identify --effects
+    inclusion``; in the window it comes from a diagnosis). The same steps as the
+    diagnosis' inclusion candidate: the model with the other ``effects`` is
+    identified and refitted by maximum likelihood, the speckle tracked, and the
+    misfit scanned. ``kw``: the model's options (roi_px, frames, cost, nu,
+    similarity). Returns the inclusion (name, center_mm, radius_mm) that
+    :func:`current_model` takes; ElastoidError when the misfit has nothing
+    localized to place one at."""
+    say = progress or (lambda s: None)
+    others = tuple(e for e in check(effects) if e != "inclusion")
+    problem = current_model(exp, others, mesh_settings=mesh_settings, progress=say, cancel=cancel, **kw)
+    try:
+        say(f"locating the inclusion: identifying the model without it ({', '.join(others) or 'baseline'})")
+        start = problem.complete(identify_with_effects(problem, (10.0, 30.0), cancel=cancel).parameters)
+        if "hyperelastic" in problem.effects and problem._hyper is None:
+            problem.refresh_hyperelastic(start, cancel=cancel)
+        say("tracking speckle between frames")
+        tracked = track(problem, start)
+        noise = noise_model(problem, tracked)
+        lik = Likelihood(problem, tracked, noise)
+        params = _fit_ml(problem, lik, start, cancel, max_evaluations, say).parameters
+        say("scanning the image plane for an undescribed inclusion")
+        guess = _scan(problem, params, tracked, noise, lik, cancel)
+    finally:
+        problem.release()
+    if guess is None:
+        raise ElastoidError("the inclusion effect: the misfit of the model without it has no localized part to "
+                            "place an inclusion at")
+    say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm")
+    return {"name": guess.name, **guess.as_parameters()}
+
+
 class _InclusionPrep:
     """The inclusion candidate's first half, started as soon as the current model
     is fitted: the scan that locates the sphere, then the model with the sphere as
@@ -598,15 +642,11 @@ class _InclusionPrep:
     about 45 s of the diagnosis' 136 s, nearly all of it now hidden."""
 
     def __init__(self, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, say, cancel):
-        from app.core.effects.inclusion import scan
-
         self.problem, self.error, self._thread, self.inclusion = None, None, None, None
         self.reference = None  # the current model on the inclusion's mesh (same_mesh_model)
         say("scanning the image plane for an undescribed inclusion")
         try:
-            self.guess = scan(problem, base.parameters, tracked, lik0.model_px(base.parameters),
-                              [_block_sigma(tp, noise, k)[tp.valid] for k, tp in enumerate(tracked.pairs)],
-                              cancel=cancel)
+            self.guess = _scan(problem, base.parameters, tracked, noise, lik0, cancel)
         except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate fails, not the diagnosis
             self.guess, self.error = None, exc
         if self.guess is None:

@@ -516,3 +516,14 @@ def test_a_located_inclusion_is_meshed_with_the_looser_envelope(monkeypatch):
     assert seen[-1][1] == ID_MESH
     dg.current_model(exp)  # no inclusion: the experiment's own automatic settings
     assert seen[-1][1] is None
+
+
+def test_a_model_with_the_inclusion_effect_needs_the_inclusions_place():
+    """Without a located inclusion the model would be the one without it, named
+    with it (what `identify --effects inclusion` once returned): refused, before
+    any meshing."""
+    from app.core.effects.model import EffectProblem
+
+    exp = read_experiment(synthetic.diagnose_case("inclusion"))
+    with pytest.raises(ElastoidError, match="needs the inclusion's place"):
+        EffectProblem.from_experiment(exp, effects=("inclusion",), mesh_settings=ID_MESH)

@@ -87,6 +87,9 @@ class EffectProblem(Problem):
         whole range (it still enriches itself wherever a fit goes)."""
         say = progress or (lambda s: None)
         effects = check(effects)
+        if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
+            raise ElastoidError("the inclusion effect needs the inclusion's place: locate it first "
+                                "(app.core.diagnose.locate_inclusion, or a diagnosis)")
         if frames is None:
             d0 = exp.frames[0].displacement_mm
             frames = (0,) + tuple(i for i, f in enumerate(exp.frames) if i > 0 and f.displacement_mm > d0 + 1e-9)
