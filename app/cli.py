@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import threading
@@ -24,6 +25,44 @@ def _floats(text: str, n: int | None = None, what: str = "value") -> list[float]
     if n is not None and len(vals) != n:
         raise argparse.ArgumentTypeError(f"{what}: expected {n} numbers, got {text!r}")
     return vals
+
+
+def _positive(text: str) -> float:
+    """argparse type: a positive number."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return v
+
+
+def _poisson(text: str) -> float:
+    """argparse type: a Poisson's ratio (-1 < nu < 0.5)."""
+    from app.core.fem import check_poisson
+
+    try:
+        return check_poisson(float(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    except ElastoidError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+
+
+def _indices(text: str) -> list[int]:
+    """argparse type: comma-separated frame indices."""
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame indices like 0,2, got {text!r}") from None
+
+
+# simulate: the option of each SyntheticSpec field its checks name
+SPEC_OPTIONS = {"size_mm": "--size-mm", "nu": "--nu", "face_mm": "--face-mm", "depth_mm": "--depth-mm",
+                "hold_s": "--hold-s", "force_noise_N": "--noise-N", "frames_at_mm": "--frames-at",
+                "image_shape": "--rows/--cols", "regions": "--inclusion", "hidden_regions": "--hidden",
+                "moduli_kPa": "--moduli", "g1": "--g1", "tau1_s": "--tau1-s", "truth_mesh_scale": "--truth-mesh-scale"}
 
 
 def _moduli(text: str) -> dict:
@@ -125,16 +164,17 @@ def _check_effects(effects: list[str]) -> None:
 
 def cmd_identify(args) -> int:
     from app.core.experiment import read_experiment
-    from app.core.identify import Problem, identify
+    from app.core.identify import Problem, check_starts, frame_indices, identify
 
     effects = [e for e in (args.effects or "").split(",") if e]
     _check_effects(effects)
     _check_json_dest(args.json)
-    exp = read_experiment(args.experiment)
     starts = _floats(args.starts, what="--starts")
+    check_starts(starts, "--starts")
+    exp = read_experiment(args.experiment)
+    frames = frame_indices(exp, args.frames, "--frames") if args.frames else None
     bar = TerminalProgress(not args.quiet, len(starts))
     settings = _mesh_settings(args, exp)
-    frames = [int(x) for x in args.frames.split(",")] if args.frames else None
     roi = [int(x) for x in _floats(args.roi, 4, "--roi")] if args.roi else None
     inclusion = None
     if effects:
@@ -246,7 +286,7 @@ def cmd_diagnose(args) -> int:
 def cmd_simulate(args) -> int:
     from app.core.geometry import Region
     from app.core.mesh import MeshSettings
-    from app.core.simulate import DEMO_SPEC, SyntheticSpec, simulate_experiment
+    from app.core.simulate import DEMO_SPEC, SpecError, SyntheticSpec, simulate_experiment
 
     say = (lambda s: print(s, file=sys.stderr)) if not args.quiet else None
     if args.demo:
@@ -291,7 +331,10 @@ def cmd_simulate(args) -> int:
                          truth_mesh_scale=args.truth_mesh_scale,
                          effects=effects, hidden_regions=tuple(hidden), g1=args.g1, tau1_s=args.tau1_s,
                          nu=args.nu)
-    out = simulate_experiment(args.output, spec, progress=say, overwrite=args.overwrite)
+    try:
+        out = simulate_experiment(args.output, spec, progress=say, overwrite=args.overwrite)
+    except SpecError as exc:  # named by the option that set the field
+        raise ElastoidError(f"{SPEC_OPTIONS.get(exc.field, exc.field)}: {exc.reason}") from None
     print(out)
     return 0
 
@@ -319,12 +362,12 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--similarity", choices=("smooth", "hard"), default="smooth",
                     help="NMI estimator of the cost: smooth (partial-volume bins, continuous; default) or hard "
                          "(the paper's fixed bins, equal to skimage's)")
-    ip.add_argument("--frames", help="frame indices, the first is the source (default: 0 and every later frame)")
+    ip.add_argument("--frames", type=_indices, help="frame indices, the first is the source (default: 0 and every later frame)")
     ip.add_argument("--roi", help="col0,row0,col1,row1 in pixels (default: the experiment's)")
     ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")
-    ip.add_argument("--nu", type=float, default=0.49, help="Poisson's ratio (default 0.49)")
-    ip.add_argument("--mesh-edge-mm", type=float, help="element size far from the probe (default: automatic)")
-    ip.add_argument("--probe-edge-mm", type=float, help="element size on the probe face (default: automatic)")
+    ip.add_argument("--nu", type=_poisson, default=0.49, help="Poisson's ratio (default 0.49)")
+    ip.add_argument("--mesh-edge-mm", type=_positive, help="element size far from the probe (default: automatic)")
+    ip.add_argument("--probe-edge-mm", type=_positive, help="element size on the probe face (default: automatic)")
     ip.add_argument("--quiet", action="store_true", help="no progress line")
     ip.set_defaults(func=cmd_identify)
 
@@ -333,8 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
     dp.add_argument("--effects", default="", help="effects already in the current model (ids, comma-separated)")
     dp.add_argument("--candidates", default="", help="effects to try (default: every effect not in the model)")
     dp.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
-    dp.add_argument("--mesh-edge-mm", type=float, help="element size far from the probe (default: automatic)")
-    dp.add_argument("--probe-edge-mm", type=float, help="element size on the probe face (default: automatic)")
+    dp.add_argument("--mesh-edge-mm", type=_positive, help="element size far from the probe (default: automatic)")
+    dp.add_argument("--probe-edge-mm", type=_positive, help="element size on the probe face (default: automatic)")
     dp.add_argument("--quiet", action="store_true", help="no progress line")
     dp.set_defaults(func=cmd_diagnose)
 

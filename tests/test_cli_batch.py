@@ -182,3 +182,72 @@ def test_identify_with_the_inclusion_effect_locates_meshes_and_fits_it(tmp_path_
     assert p[f"E_{inc['name']}_kPa"] > 2.0 * p["E_B_kPa"], p  # stiffer than its tissue, as the truth's
     for region in ("B", "A"):
         assert p[f"E_{region}_kPa"] == pytest.approx(truth["moduli_kPa"][region], rel=0.10), p
+
+
+@pytest.mark.parametrize("options,option,words", [
+    (["--depth-mm", "200"], "--depth-mm", "96 mm high"),
+    (["--depth-mm", "-3"], "--depth-mm", "must be positive"),
+    (["--frames-at", "0,20"], "--frames-at", "between 0 and the depth"),
+    (["--frames-at", "5,2"], "--frames-at", "must increase"),
+    (["--frames-at", "0"], "--frames-at", "at least one deformed frame"),
+    (["--noise-N", "-1"], "--noise-N", "zero or positive"),
+    (["--rows", "0"], "--rows/--cols", "32 x 32 pixels"),
+    (["--nu", "0.5"], "--nu", "between -1 and 0.5"),
+    (["--size-mm", "0,10,10"], "--size-mm", "must be positive"),
+    (["--face-mm", "200,10"], "--face-mm", "does not lie on the"),
+    (["--hold-s", "-1"], "--hold-s", "zero or positive"),
+    (["--effects", "viscoelastic", "--g1", "1.5"], "--g1", "[0, 1)"),
+    (["--moduli", "B=-3,A=5"], "--moduli", "region 'B' must be positive"),
+    (["--inclusion", "sphere:45,45,90,15"], "--inclusion", "reaches outside"),
+    (["--hidden", "sphere:45,45,95,5,60"], "--hidden", "reaches outside"),
+])
+def test_simulate_refuses_what_cannot_be_simulated_before_meshing(tmp_path, capsys, monkeypatch, options, option,
+                                                                   words):
+    """Each of these once went on to mesh (or failed later with a traceback): now
+    the message names the option, nothing is meshed and no folder is written."""
+    import app.core.simulate
+
+    def must_not_mesh(*a, **k):
+        raise AssertionError("meshing started")
+
+    monkeypatch.setattr(app.core.simulate.SpecimenTwin, "build", must_not_mesh)
+    out = tmp_path / "exp"
+    assert main(["simulate", str(out), *options, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"elastoid: {option}: ") and words in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("options,words", [
+    (["--frames", "0,7"], "--frames: there is no frame 7: the experiment has 3 frames, 0 to 2"),
+    (["--frames", "1,1"], "--frames: frame 1 is given twice"),
+    (["--frames", "a"], "argument --frames: expected comma-separated frame indices"),
+    (["--starts", "0,-5"], "--starts: start moduli must be positive"),
+    (["--nu", "0.5"], "argument --nu: Poisson's ratio must lie between -1 and 0.5"),
+    (["--mesh-edge-mm", "0"], "argument --mesh-edge-mm: must be positive"),
+])
+def test_identify_refuses_bad_options_before_the_run(capsys, monkeypatch, options, words):
+    """--frames 0,7 on three frames silently used frame 1 (the index wrapped), 1,1
+    compared a frame with itself, and --starts 0 or --nu 0.5 ended in a traceback."""
+    import app.core.identify
+
+    monkeypatch.setattr(app.core.identify.Problem, "from_experiment",
+                        classmethod(lambda *a, **k: (_ for _ in ()).throw(AssertionError("the run started"))))
+    try:
+        code = main(["identify", str(ROOT / "resources" / "demo"), *options, "--quiet"])
+    except SystemExit as exc:  # argparse's own refusals
+        code = exc.code
+    assert code == 2
+    err = capsys.readouterr().err
+    assert words in err and "Traceback" not in err, err
+
+
+def test_frames_may_count_from_the_end():
+    from app.core.experiment import read_experiment
+    from app.core.identify import frame_indices
+
+    exp = read_experiment(ROOT / "resources" / "demo")
+    assert frame_indices(exp) == (0, 1, 2)
+    assert frame_indices(exp, [0, -1]) == (0, 2)
+    with pytest.raises(Exception, match="no frame -4"):
+        frame_indices(exp, [0, -4])

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from app.core.errors import ElastoidError
 from app.core.mesh import TetMesh
 
 # local edge order of the 10-node tetrahedron: nodes 4..9 sit on these edges
@@ -190,6 +191,20 @@ def assemble(space: P2Space, chunk: int = 4000) -> AffineOperator:
 # ---------------------------------------------------------------------------
 # materials
 # ---------------------------------------------------------------------------
+
+
+def check_poisson(nu: float, what: str = "nu") -> float:
+    """Poisson's ratio as a float, or ElastoidError naming ``what``: an isotropic
+    solid needs -1 < nu < 0.5, and 0.5 itself (incompressible) has no Lame lambda
+    for a displacement-only model."""
+    try:
+        v = float(nu)
+    except (TypeError, ValueError):
+        raise ElastoidError(f"{what}: Poisson's ratio must be a number, got {nu!r}") from None
+    if not -1.0 < v < 0.5:
+        raise ElastoidError(f"{what}: Poisson's ratio must lie between -1 and 0.5, got {v:g}"
+                            + ("; for nearly incompressible tissue use e.g. 0.49 or 0.499" if v >= 0.5 else ""))
+    return v
 
 
 def lame(youngs_kPa: float, nu: float) -> tuple[float, float]:

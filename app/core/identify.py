@@ -20,6 +20,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from app.core.errors import Cancelled, ElastoidError
+from app.core.fem import check_poisson
 from app.core.forward import Boundary, FEModel, ReducedModel, build_model, region_terms, training_set
 from app.core.images import default_roi, pixel_to_world
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
@@ -75,6 +76,31 @@ def force_noise_N(force_N: np.ndarray) -> float:
     if len(d2) < 3:
         return float("nan")
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
+
+
+def frame_indices(exp, frames=None, what: str = "frames") -> tuple[int, ...]:
+    """The frames a cost compares, the first the source (pre-deformation) frame:
+    by default frame 0 and every later frame with more probe travel. Given
+    indices may count from the end (-1: the last frame); each must exist and
+    appear once. ElastoidError (naming ``what``) otherwise."""
+    n = len(exp.frames)
+    if frames is None:
+        d0 = exp.frames[0].displacement_mm
+        out = (0,) + tuple(i for i, f in enumerate(exp.frames) if i > 0 and f.displacement_mm > d0 + 1e-9)
+    else:
+        out = []
+        for i in frames:
+            if isinstance(i, bool) or int(i) != i or not -n <= int(i) < n:
+                raise ElastoidError(f"{what}: there is no frame {i!r}: the experiment has {n} frames, 0 to {n - 1}")
+            out.append(int(i) % n)
+        twice = sorted({i for i in out if out.count(i) > 1})
+        if twice:
+            raise ElastoidError(f"{what}: frame {twice[0]} is given twice (the first frame is the source, and each "
+                                "other frame is compared with it)")
+        out = tuple(out)
+    if len(out) < 2:
+        raise ElastoidError("identification needs a source frame and at least one deformed frame")
+    return out
 
 
 class Problem:
@@ -140,12 +166,8 @@ class Problem:
         default frame 0 against every later frame with larger probe travel.
         """
         say = progress or (lambda s: None)
-        if frames is None:
-            d0 = exp.frames[0].displacement_mm
-            frames = (0,) + tuple(i for i, f in enumerate(exp.frames) if i > 0 and f.displacement_mm > d0 + 1e-9)
-        frames = tuple(int(i) % len(exp.frames) for i in frames)
-        if len(frames) < 2:
-            raise ElastoidError("identification needs a source frame and at least one deformed frame")
+        frames = frame_indices(exp, frames)
+        nu = check_poisson(nu)
         if mesh is None:
             mesh = specimen_mesh(exp, mesh_settings, progress=say, cancel=cancel)
         say("assembling the finite-element model")
@@ -559,6 +581,23 @@ def nelder_mead(f, x0, step: float, *, xatol: float, fatol: float, max_evaluatio
     return res
 
 
+def check_starts(starts_kPa, what: str = "starts") -> None:
+    """Start moduli: at least one, each a positive finite number of kPa (the
+    search runs in log-moduli). ElastoidError naming ``what`` otherwise."""
+    starts = list(starts_kPa)
+    if not starts:
+        raise ElastoidError(f"{what}: give at least one start modulus (kPa)")
+    def ok(s):
+        try:
+            return math.isfinite(float(s)) and float(s) > 0
+        except (TypeError, ValueError):
+            return False
+
+    bad = [s for s in starts if not ok(s)]
+    if bad:
+        raise ElastoidError(f"{what}: start moduli must be positive numbers of kPa, got {bad[0]!r}")
+
+
 def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | None = None,
              progress: Callable[[EvalReport], None] | None = None, cancel: threading.Event | None = None,
              max_evaluations: int = 200, xatol: float = 2e-3, fatol: float = 1e-6) -> Result:
@@ -570,6 +609,7 @@ def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | Non
     exactly invariant to scaling all moduli), so the first free modulus stays at
     the start value and only the ratios are searched."""
     t0 = time.perf_counter()
+    check_starts(starts_kPa)
     fixed = dict(fixed or {})
     free = [n for n in problem.parameter_names if n not in fixed]
     if not free:

@@ -10,7 +10,9 @@ from typing import Callable
 
 import numpy as np
 
+from app.core.errors import ElastoidError
 from app.core.experiment import Experiment, ForceLog, Frame, Imaging, Probe, Specimen, write_experiment
+from app.core.fem import check_poisson
 from app.core.geometry import Region
 from app.core.mesh import MeshSettings
 from app.core.twin import SpecimenTwin
@@ -83,6 +85,84 @@ def _template(spec: SyntheticSpec) -> Experiment:
                       notes=spec.notes or f"simulated by ElastoID (seed {spec.seed})")
 
 
+class SpecError(ElastoidError):
+    """A simulation setting that cannot be simulated; ``field`` names the
+    SyntheticSpec field (the command line maps it to its option)."""
+
+    def __init__(self, field_name: str, message: str):
+        super().__init__(f"{field_name}: {message}")
+        self.field, self.reason = field_name, message
+
+
+def check_spec(spec: SyntheticSpec) -> None:
+    """Refuse, before any meshing, a setting that cannot be simulated: each
+    message names the field (SpecError). The checks an experiment folder gets
+    when it is read (positive sizes, regions inside the specimen, the probe face
+    on the top face) and those of the loading protocol."""
+    def fail(name, msg):
+        raise SpecError(name, msg)
+
+    def positive(name, values, n=None):
+        vals = [values] if np.isscalar(values) else list(values)
+        if n is not None and len(vals) != n:
+            fail(name, f"expected {n} numbers, got {len(vals)}")
+        if not all(np.isfinite(v) and v > 0 for v in vals):
+            fail(name, f"must be positive, got {', '.join(f'{v:g}' for v in vals)}")
+
+    positive("size_mm", spec.size_mm, 3)
+    sx, sy, sz = (float(v) for v in spec.size_mm)
+    try:
+        check_poisson(spec.nu)
+    except ElastoidError as exc:
+        fail("nu", str(exc).split(": ", 1)[1])
+    positive("face_mm", spec.face_mm, 2)
+    cx, cy = spec.probe_center_mm or (sx / 2, sy / 2)
+    fx, fy = spec.face_mm
+    if cx - fx / 2 < 0 or cy - fy / 2 < 0 or cx + fx / 2 > sx or cy + fy / 2 > sy:
+        fail("face_mm", f"a {fx:g} x {fy:g} mm probe face centred at ({cx:g}, {cy:g}) mm does not lie on the "
+                        f"{sx:g} x {sy:g} mm top face")
+    positive("depth_mm", spec.depth_mm)
+    if spec.depth_mm >= sz:
+        fail("depth_mm", f"the probe cannot travel {spec.depth_mm:g} mm into a specimen {sz:g} mm high")
+    for name in ("speed_mm_s", "rate_Hz", "truth_mesh_scale", "scatterer_density_per_mm3"):
+        positive(name, getattr(spec, name))
+    positive("pixel_spacing_mm", spec.pixel_spacing_mm, 2)
+    for name in ("hold_s", "force_noise_N"):
+        v = getattr(spec, name)
+        if not (np.isfinite(v) and v >= 0):
+            fail(name, f"must be zero or positive, got {v:g}")
+    at = [float(x) for x in spec.frames_at_mm]
+    if len(at) < 2:
+        fail("frames_at_mm", f"a source frame and at least one deformed frame are needed, got {len(at)}")
+    if any(x < 0 or x > spec.depth_mm + 1e-9 for x in at):
+        fail("frames_at_mm", f"frames are taken during the loading, between 0 and the depth ({spec.depth_mm:g} mm), "
+                             f"got {', '.join(f'{x:g}' for x in at)}")
+    if any(b <= a for a, b in zip(at, at[1:])):
+        fail("frames_at_mm", f"the probe travels must increase, got {', '.join(f'{x:g}' for x in at)}")
+    rows, cols = spec.image_shape
+    if min(rows, cols) < 32:
+        fail("image_shape", f"frames need at least 32 x 32 pixels, got {rows} rows x {cols} columns")
+    names = [r.name for r in (*spec.regions, *spec.hidden_regions)]
+    for which, regions in (("regions", spec.regions), ("hidden_regions", spec.hidden_regions)):
+        for r in regions:
+            if r.kind == "background":
+                continue
+            lo, hi = r.bounds_mm()
+            if np.any(np.asarray(lo) < -1e-6) or np.any(np.asarray(hi) > np.array([sx, sy, sz]) + 1e-6):
+                fail(which, f"region {r.name!r} reaches outside the {sx:g} x {sy:g} x {sz:g} mm specimen (its bounds "
+                            f"are {np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()} mm)")
+    for n in names:
+        E = spec.moduli_kPa.get(n)
+        if E is None:
+            fail("moduli_kPa", f"no modulus for region {n!r}")
+        if not (np.isfinite(E) and E > 0):
+            fail("moduli_kPa", f"the modulus of region {n!r} must be positive, got {E:g} kPa")
+    if "viscoelastic" in spec.effects:
+        if not 0 <= spec.g1 < 1:
+            fail("g1", f"the relaxing fraction must lie in [0, 1), got {spec.g1:g}")
+        positive("tau1_s", spec.tau1_s)
+
+
 def protocol(spec: SyntheticSpec) -> tuple[np.ndarray, np.ndarray]:
     """(time_s, displacement_mm) of a ramp, optional hold and optional unload."""
     t_ramp = spec.depth_mm / spec.speed_mm_s
@@ -99,6 +179,7 @@ def simulate_experiment(out: str | Path, spec: SyntheticSpec = SyntheticSpec(), 
                         progress: Callable[[str], None] | None = None, cancel=None, overwrite: bool = False) -> Path:
     """Write a synthetic experiment folder (format 1) with ``truth.toml`` beside it."""
     say = progress or (lambda s: None)
+    check_spec(spec)
     exp = _template(spec)
     from app.core.effects import check
 

@@ -34,9 +34,9 @@ from app.core.effects.boundary import boundary_for
 from app.core.effects.compressibility import LameReducedModel, lame_theta
 from app.core.effects.viscoelastic import prony_force
 from app.core.errors import Cancelled, ElastoidError
-from app.core.fem import interpolation_matrix
+from app.core.fem import check_poisson, interpolation_matrix
 from app.core.forward import ReducedModel, build_model, local_training_set, region_terms, training_set
-from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, nelder_mead
+from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, check_starts, frame_indices, nelder_mead
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 from app.core.solver import single_threaded_blas
 
@@ -90,12 +90,8 @@ class EffectProblem(Problem):
         if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
             raise ElastoidError("the inclusion effect needs the inclusion's place: locate it first "
                                 "(app.core.diagnose.locate_inclusion, or a diagnosis)")
-        if frames is None:
-            d0 = exp.frames[0].displacement_mm
-            frames = (0,) + tuple(i for i, f in enumerate(exp.frames) if i > 0 and f.displacement_mm > d0 + 1e-9)
-        frames = tuple(int(i) % len(exp.frames) for i in frames)
-        if len(frames) < 2:
-            raise ElastoidError("identification needs a source frame and at least one deformed frame")
+        frames = frame_indices(exp, frames)
+        nu = check_poisson(nu)
         if mesh is None and base is not None and base.mesh.region_names == exp.specimen.region_names:
             mesh = base.mesh
         if mesh is None:
@@ -499,6 +495,7 @@ def identify_with_effects(problem: EffectProblem, starts_kPa=(10.0, 30.0), *, fi
     moduli start at each start value, the effect parameters at their defaults).
     Returns an :class:`app.core.identify.Result` with the effects filled in."""
     t0 = time.perf_counter()
+    check_starts(starts_kPa)
     fixed = dict(fixed or {})
     free = tuple(n for n in problem.parameter_names if n not in fixed)
     best, starts, evals = None, [], 0
