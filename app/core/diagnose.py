@@ -463,8 +463,8 @@ class Diagnosis:
             why += (f"; the verdict goes to {v.effect}, whose pattern the misfit has more closely "
                    f"({max(v.signature or 0, 0):.0%} against {max(c.signature or 0, 0):.0%})")
         return (f"{r} scores {how} ({c.score:+,.0f} against {v.score:+,.0f}){why}: these measurements barely "
-                f"separate the two. Use what you know of the setup ({INFO[self.verdict].title} or "
-                f"{INFO[r].title}?), or record frames closer in strain (about 2% apart): their "
+                f"separate the two. Use what you know of the setup: {INFO[self.verdict].title}, or "
+                f"{INFO[r].title}? Or record frames closer in strain (about 2% apart): their "
                 f"tracking is more precise, and the two effects' patterns stand out better")
 
     def rank_of(self, effect: str) -> int:

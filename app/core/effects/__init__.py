@@ -66,7 +66,7 @@ NU_PARAMETER = Parameter("nu", 0.45, 0.3, 0.4995, "logit", "Poisson's ratio")
 INFO = {
     "hyperelastic": EffectInfo("hyperelastic", "large deformation (neo-Hookean)",
                                "small strains: force proportional to probe travel", "force", (), 1),
-    "viscoelastic": EffectInfo("viscoelastic", "viscoelastic relaxation (Prony series)",
+    "viscoelastic": EffectInfo("viscoelastic", "time-dependent relaxation (Prony series)",
                                "no time dependence", "force", VISCO_PARAMETERS, 2),
     "sliding-bottom": EffectInfo("sliding-bottom", "specimen slides on the table",
                                  "bottom face bonded to the table", "images", (), 1),

@@ -811,7 +811,7 @@ class ModelCheckPanel(Panel):
             ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
             tie = d.tie_advice()
             tie = (f"<br><span style='color:#b26a00'>\u26a0 Near tie: {html.escape(tie)}.</span>" if tie else "")
-            self.verdict_label.setText(f"<b>Verdict: {d.verdict}</b> ({INFO[d.verdict].title}). "
+            self.verdict_label.setText(f"<b>Verdict: {d.verdict}</b>, {html.escape(INFO[d.verdict].title)}. "
                                        f"{html.escape(ev)}.{tie}")
         b = d.baseline
         self.diagnosis_current.setText(
