@@ -485,7 +485,10 @@ class Diagnosis:
                 "seconds": round(self.seconds, 2)}
 
     def lines(self) -> list[str]:
-        out = [f"current model: {', '.join(self.baseline.effects) or 'baseline'}; "
+        inc = self.baseline.inclusion
+        where = (f" ({inc['name']} centred at ({', '.join(f'{c:.1f}' for c in inc['center_mm'])}) mm, radius "
+                 f"{inc['radius_mm']:.1f} mm)" if inc else "")
+        out = [f"current model: {', '.join(self.baseline.effects) or 'baseline'}{where}; "
                f"force misfit {self.baseline.misfit['force_rms_N']:.4f} N, displacement misfit "
                f"{self.baseline.misfit['displacement_rms_px']:.3f} px", f"noise model: {self.noise.describe()}"]
         for i, c in enumerate(self.candidates, 1):

@@ -270,6 +270,10 @@ def test_a_near_tie_goes_to_the_effect_whose_pattern_the_misfit_has():
     assert "inclusion scores slightly better (+2,873 against +2,783)" in advice
     assert "the verdict goes to sliding-bottom" in advice and "specimen slides on the table" in advice
     assert d.to_json_dict()["rival"] == "inclusion" and d.lines()[-1].startswith("near tie: inclusion")
+    assert d.lines()[0].startswith("current model: baseline; force misfit 0.0200 N")
+    inc = {"name": "I", "center_mm": [57.5, 45.0, 85.2], "radius_mm": 5.4}  # a current model with an inclusion
+    d.baseline = Candidate("", ("inclusion",), {}, {}, dict(d.baseline.misfit), inclusion=inc)
+    assert d.lines()[0].startswith("current model: inclusion (I centred at (57.5, 45.0, 85.2) mm, radius 5.4 mm);")
     d = diag(("compressibility", 1569.0, True, 0.792), ("probe-slip", 1415.0, True, 0.778))
     assert d.verdict == "compressibility" and d.rival == "probe-slip"
     assert "probe-slip scores nearly as well (+1,415 against +1,569)" in d.tie_advice()
