@@ -1060,7 +1060,12 @@ class ModelCheck:
 
     def identify(self, effects=(), *, inclusion=None, progress=None, cancel=None, starts_kPa=(10.0, 30.0),
                  note: str = "") -> ModelVersion:
-        """Fit a model with ``effects`` (NMI + force, as ``identify``) and make it a new version."""
+        """Fit a model with ``effects`` (NMI + force, as ``identify``) and make it a new version.
+        With the ``inclusion`` effect and no ``inclusion`` given, it is located first
+        (:func:`locate_inclusion`, as the diagnosis' inclusion candidate does)."""
+        if "inclusion" in effects and inclusion is None:
+            inclusion = locate_inclusion(self.exp, effects, mesh_settings=self.mesh_settings, nu=self.nu,
+                                         progress=progress, cancel=cancel)
         problem = current_model(self.exp, effects, mesh_settings=self.mesh_settings, inclusion=inclusion,
                                 base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
         res = identify_with_effects(problem, starts_kPa, cancel=cancel)

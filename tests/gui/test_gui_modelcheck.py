@@ -65,7 +65,7 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     exp = read_experiment(visco_experiment)
     assert win.docks["modelcheck"].isVisible()
     assert panel.identify_button.isEnabled() and not panel.diagnose_button.isEnabled()
-    assert not panel.identify_boxes["inclusion"].isEnabled()  # an inclusion comes from a diagnosis
+    assert panel.identify_boxes["inclusion"].isEnabled()  # located on request (see the test below)
 
     # identify the baseline
     _click_and_wait(qtbot, panel, panel.identify_button)
@@ -190,6 +190,34 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     text = win.log_panel.text.toPlainText()
     assert "model check: trying viscoelastic" in text and "model check: added viscoelastic" in text
     assert win.session.locked_by is None
+
+
+def test_identify_with_an_inclusion_locates_it(window, visco_experiment, qtbot, monkeypatch):
+    """Ticking inclusion in the Model box with no inclusion in the current
+    version: the check locates one (app.core.diagnose.locate_inclusion, stubbed
+    here with a fixed sphere beside region A; the locator itself is tested on
+    data with a hidden inclusion in tests/test_cli_batch.py), meshes the
+    specimen with it and fits its modulus, as a new version."""
+    import app.core.diagnose as dg
+
+    seen = []
+
+    def locate(exp, effects, **kw):
+        seen.append(tuple(effects))
+        return {"name": "I", "center_mm": [10.0, 20.0, 22.0], "radius_mm": 3.0}
+
+    monkeypatch.setattr(dg, "locate_inclusion", locate)
+    panel = _prepare(window, visco_experiment)
+    box = panel.identify_boxes["inclusion"]
+    assert box.isEnabled() and "located from the misfit" in box.toolTip()
+    box.setChecked(True)
+    _click_and_wait(qtbot, panel, panel.identify_button)
+    assert not window.error_boxes, [b.informativeText() for b in window.error_boxes]
+    v = panel.model.history.current_version
+    assert seen == [("inclusion",)]
+    assert v.effects == ("inclusion",) and v.inclusion["name"] == "I", v
+    assert set(v.parameters) >= {"E_B_kPa", "E_A_kPa", "E_I_kPa"} and v.parameters["E_I_kPa"] > 0
+    assert "inclusion I at (10.0, 20.0, 22.0) mm" in panel.version_label.text(), panel.version_label.text()
 
 
 def test_cancel_an_identification(window, visco_experiment, qtbot):

@@ -118,10 +118,8 @@ class ModelCheckModel:
             raise ElastoidError("open an experiment first")
         new = self.check is None or inputs != self.inputs
         check = self._make(session) if new else self.check
+        # the current version's inclusion, else (None) the check locates one from the misfit
         inclusion = self.current_inclusion if ("inclusion" in effects and not new) else None
-        if "inclusion" in effects and inclusion is None:
-            raise ElastoidError("an inclusion is located by the diagnosis: diagnose, then add the inclusion; "
-                                "after that it can be identified with other effects")
         prev = self.snapshot if not new else None
 
         def work(progress, cancel):

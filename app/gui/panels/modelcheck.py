@@ -126,7 +126,11 @@ class ModelCheckPanel(Panel):
             cb = QCheckBox(e)
             cb.setObjectName(f"{prefix}_{e}")
             cb.setChecked(checked)
-            cb.setToolTip(f"{INFO[e].title}; relaxes the assumption: {INFO[e].assumption}")
+            tip = f"{INFO[e].title}; relaxes the assumption: {INFO[e].assumption}"
+            if (e, prefix) == ("inclusion", "identify"):
+                tip += ("; to identify with it, the current version's inclusion is kept, else one is located "
+                        "from the misfit of the model without it")
+            cb.setToolTip(tip)
             grid.addWidget(cb, k // 2, k % 2)
             boxes[e] = cb
         return boxes
@@ -471,7 +475,7 @@ class ModelCheckPanel(Panel):
         free = has and not running and not other_lock
         cur = set(m.current_effects)
         for e, cb in self.identify_boxes.items():
-            cb.setEnabled(free and (e != "inclusion" or m.current_inclusion is not None))
+            cb.setEnabled(free)
         for e, cb in self.candidate_boxes.items():
             cb.setEnabled(free and e not in cur)
         self.identify_button.setEnabled(free)
