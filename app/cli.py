@@ -40,14 +40,16 @@ def _positive(text: str) -> float:
 
 def _poisson(text: str) -> float:
     """argparse type: a Poisson's ratio (-1 < nu < 0.5)."""
-    from app.core.fem import check_poisson
+    from app.core.fem import poisson_problem
 
     try:
-        return check_poisson(float(text))
+        v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    except ElastoidError as exc:
-        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+    why = poisson_problem(v)
+    if why:
+        raise argparse.ArgumentTypeError(why)
+    return v
 
 
 def _indices(text: str) -> list[int]:
@@ -209,8 +211,10 @@ def cmd_identify(args) -> int:
     if args.json != "-":
         print(f"{exp.name}: {result.evaluations} evaluations in {result.seconds:.1f} s, cost {args.cost}")
         if inclusion is not None:
+            from app.core.effects.inclusion import place_text
+
             print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit): centre "
-                  f"({', '.join(f'{c:.1f}' for c in inclusion['center_mm'])}) mm, radius {inclusion['radius_mm']:.1f} mm")
+                  f"{place_text(inclusion)}")
         for name, val in result.parameters.items():
             region = name[2:-4] if name.startswith("E_") else ""
             extra = f"   (reference {ref[region]:.1f} kPa)" if region in ref else ""

@@ -485,9 +485,10 @@ class Diagnosis:
                 "seconds": round(self.seconds, 2)}
 
     def lines(self) -> list[str]:
+        from app.core.effects.inclusion import place_text
+
         inc = self.baseline.inclusion
-        where = (f" ({inc['name']} centred at ({', '.join(f'{c:.1f}' for c in inc['center_mm'])}) mm, radius "
-                 f"{inc['radius_mm']:.1f} mm)" if inc else "")
+        where = f" ({inc['name']} centred at {place_text(inc)})" if inc else ""
         out = [f"current model: {', '.join(self.baseline.effects) or 'baseline'}{where}; "
                f"force misfit {self.baseline.misfit['force_rms_N']:.4f} N, displacement misfit "
                f"{self.baseline.misfit['displacement_rms_px']:.3f} px", f"noise model: {self.noise.describe()}"]
@@ -592,6 +593,28 @@ def _model_like(problem: EffectProblem, effects, near_kPa, cancel, **kw) -> Effe
                                          cancel=cancel, near_kPa=near_kPa, **kw)
 
 
+def _current_fit(problem: EffectProblem, start: dict | None, tracked, cancel, max_evaluations: int, say):
+    """The current model fitted the way the diagnosis scores it: identified (unless
+    ``start`` is given), the speckle tracked (unless ``tracked`` is), the noise
+    model, and the maximum-likelihood refit. Returns (tracked field, noise model,
+    likelihood, the refit, the refit's seconds)."""
+    if start is None:
+        say("identifying the current model")
+        start = identify_with_effects(problem, (10.0, 30.0), cancel=cancel).parameters
+    start = problem.complete(start)
+    if "hyperelastic" in problem.effects and problem._hyper is None:
+        problem.refresh_hyperelastic(start, cancel=cancel)
+    if tracked is None:
+        say("tracking speckle between frames")
+        tracked = track(problem, start)
+    noise = noise_model(problem, tracked)
+    say("refitting the current model (maximum likelihood)")
+    lik = Likelihood(problem, tracked, noise)
+    t = time.perf_counter()
+    res = _fit_ml(problem, lik, start, cancel, max_evaluations, say)
+    return tracked, noise, lik, res, time.perf_counter() - t
+
+
 def _scan(problem: EffectProblem, params: dict, tracked, noise, lik, cancel):
     """The inclusion scan (app.core.effects.inclusion.scan) of the misfit at
     ``params``, with each tracked block's noise: an InclusionGuess, or None."""
@@ -616,17 +639,10 @@ def locate_inclusion(exp, effects=(), *, mesh_settings=None, max_evaluations: in
     others = tuple(e for e in check(effects) if e != "inclusion")
     problem = current_model(exp, others, mesh_settings=mesh_settings, progress=say, cancel=cancel, **kw)
     try:
-        say(f"locating the inclusion: identifying the model without it ({', '.join(others) or 'baseline'})")
-        start = problem.complete(identify_with_effects(problem, (10.0, 30.0), cancel=cancel).parameters)
-        if "hyperelastic" in problem.effects and problem._hyper is None:
-            problem.refresh_hyperelastic(start, cancel=cancel)
-        say("tracking speckle between frames")
-        tracked = track(problem, start)
-        noise = noise_model(problem, tracked)
-        lik = Likelihood(problem, tracked, noise)
-        params = _fit_ml(problem, lik, start, cancel, max_evaluations, say).parameters
+        say(f"locating the inclusion from the misfit of the model without it ({', '.join(others) or 'baseline'})")
+        tracked, noise, lik, fit_, _ = _current_fit(problem, None, None, cancel, max_evaluations, say)
         say("scanning the image plane for an undescribed inclusion")
-        guess = _scan(problem, params, tracked, noise, lik, cancel)
+        guess = _scan(problem, fit_.parameters, tracked, noise, lik, cancel)
     finally:
         problem.release()
     if guess is None:
@@ -706,25 +722,11 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
         say(f"building the current model ({', '.join(effects) or 'baseline'})")
         problem = current_model(exp, effects, mesh_settings=mesh_settings, inclusion=inclusion, progress=say,
                                 cancel=cancel)
-    if start is None:
-        say("identifying the current model")
-        start = identify_with_effects(problem, (10.0, 30.0), cancel=cancel).parameters
-    start = problem.complete(start)
-    if "hyperelastic" in problem.effects and problem._hyper is None:
-        problem.refresh_hyperelastic(start, cancel=cancel)
-    if tracked is None:
-        say("tracking speckle between frames")
-        tracked = track(problem, start)
-    noise = noise_model(problem, tracked)
+    tracked, noise, lik0, r0, fit_s = _current_fit(problem, start, tracked, cancel, max_evaluations, say)
     lnN = math.log(noise.n)
-
-    say("refitting the current model (maximum likelihood)")
-    lik0 = Likelihood(problem, tracked, noise)
-    t1 = time.perf_counter()
-    r0 = _fit_ml(problem, lik0, start, cancel, max_evaluations, say)
     base_params = r0.parameters
     base = Candidate("", problem.effects, base_params, r0.cost, _misfit(lik0, base_params), 0, 0.0, "",
-                     inclusion, time.perf_counter() - t1, problem)
+                     inclusion, fit_s, problem)
     comparison = compare(problem, base_params, tracked)
 
     prep = None

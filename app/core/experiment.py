@@ -303,15 +303,23 @@ def _read_region(f: _Fields, index: int, size, folder: Path) -> Region:
         kw["surface_mesh"] = load_surface(folder / rel, f.name("file"))
     f.unknown({"name", "kind"} | _REGION_FIELDS[kind])
     region = Region(name=name, kind=kind, **kw)
-    if kind != "background":
-        lo, hi = region.bounds_mm()
-        tol = 1e-6
-        if np.any(lo < -tol) or np.any(hi > np.asarray(size) + tol):
-            key = "file" if kind == "surface" else "center_mm"
-            f.fail(key, f"region {name!r} reaches outside the specimen box "
-                        f"[0,{size[0]:g}] x [0,{size[1]:g}] x [0,{size[2]:g}] mm "
-                        f"(its bounds are {np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()})")
+    outside = region_outside(region, size)
+    if outside:
+        f.fail("file" if kind == "surface" else "center_mm", outside)
     return region
+
+
+def region_outside(region: Region, size_mm) -> str | None:
+    """Why ``region`` does not fit in a specimen box of ``size_mm``, or None."""
+    if region.kind == "background":
+        return None
+    lo, hi = region.bounds_mm()
+    tol = 1e-6
+    if np.any(lo < -tol) or np.any(hi > np.asarray(size_mm) + tol):
+        sx, sy, sz = size_mm
+        return (f"region {region.name!r} reaches outside the specimen box [0,{sx:g}] x [0,{sy:g}] x [0,{sz:g}] mm "
+                f"(its bounds are {np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()})")
+    return None
 
 
 def load_surface(path: Path, field_name: str = "file") -> tuple[np.ndarray, np.ndarray]:
@@ -342,11 +350,19 @@ def _read_probe(p: _Fields, specimen: Specimen) -> Probe:
     lat = tuple(float(x) for x in lat_a / np.linalg.norm(lat_a))
     p.unknown({"face_mm", "center_mm", "lateral_axis"})
     probe = Probe(face_mm=face, center_mm=center, lateral_axis=lat)
-    x0, x1, y0, y1 = probe.face_rect_mm()
-    sx, sy, _ = specimen.size_mm
-    if x0 < 0 or y0 < 0 or x1 > sx or y1 > sy:
-        p.fail("center_mm", f"the probe face [{x0:g},{x1:g}] x [{y0:g},{y1:g}] mm does not lie on the top face")
+    off = probe_off_top(probe, specimen.size_mm)
+    if off:
+        p.fail("center_mm", off)
     return probe
+
+
+def probe_off_top(probe: Probe, size_mm) -> str | None:
+    """Why the probe face does not lie on the top face of a box of ``size_mm``, or None."""
+    x0, x1, y0, y1 = probe.face_rect_mm()
+    sx, sy, _ = size_mm
+    if x0 < 0 or y0 < 0 or x1 > sx or y1 > sy:
+        return f"the probe face [{x0:g},{x1:g}] x [{y0:g},{y1:g}] mm does not lie on the top face"
+    return None
 
 
 def _read_imaging(im: _Fields) -> Imaging:

@@ -193,18 +193,26 @@ def assemble(space: P2Space, chunk: int = 4000) -> AffineOperator:
 # ---------------------------------------------------------------------------
 
 
-def check_poisson(nu: float, what: str = "nu") -> float:
-    """Poisson's ratio as a float, or ElastoidError naming ``what``: an isotropic
+def poisson_problem(nu) -> str | None:
+    """Why ``nu`` is not a Poisson's ratio this model can take, or None: an isotropic
     solid needs -1 < nu < 0.5, and 0.5 itself (incompressible) has no Lame lambda
     for a displacement-only model."""
     try:
         v = float(nu)
     except (TypeError, ValueError):
-        raise ElastoidError(f"{what}: Poisson's ratio must be a number, got {nu!r}") from None
+        return f"Poisson's ratio must be a number, got {nu!r}"
     if not -1.0 < v < 0.5:
-        raise ElastoidError(f"{what}: Poisson's ratio must lie between -1 and 0.5, got {v:g}"
-                            + ("; for nearly incompressible tissue use e.g. 0.49 or 0.499" if v >= 0.5 else ""))
-    return v
+        return (f"Poisson's ratio must lie between -1 and 0.5, got {v:g}"
+                + ("; for nearly incompressible tissue use e.g. 0.49 or 0.499" if v >= 0.5 else ""))
+    return None
+
+
+def check_poisson(nu, what: str = "nu") -> float:
+    """Poisson's ratio as a float, or ElastoidError naming ``what`` (see :func:`poisson_problem`)."""
+    why = poisson_problem(nu)
+    if why:
+        raise ElastoidError(f"{what}: {why}")
+    return float(nu)
 
 
 def lame(youngs_kPa: float, nu: float) -> tuple[float, float]:

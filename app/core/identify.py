@@ -587,15 +587,13 @@ def check_starts(starts_kPa, what: str = "starts") -> None:
     starts = list(starts_kPa)
     if not starts:
         raise ElastoidError(f"{what}: give at least one start modulus (kPa)")
-    def ok(s):
+    for s in starts:
         try:
-            return math.isfinite(float(s)) and float(s) > 0
+            v = float(s)
         except (TypeError, ValueError):
-            return False
-
-    bad = [s for s in starts if not ok(s)]
-    if bad:
-        raise ElastoidError(f"{what}: start moduli must be positive numbers of kPa, got {bad[0]!r}")
+            v = math.nan
+        if not (math.isfinite(v) and v > 0):
+            raise ElastoidError(f"{what}: start moduli must be positive numbers of kPa, got {s!r}")
 
 
 def identify(problem: Problem, starts_kPa=PAPER_STARTS_KPA, *, fixed: dict | None = None,

@@ -11,8 +11,9 @@ from typing import Callable
 import numpy as np
 
 from app.core.errors import ElastoidError
-from app.core.experiment import Experiment, ForceLog, Frame, Imaging, Probe, Specimen, write_experiment
-from app.core.fem import check_poisson
+from app.core.experiment import (Experiment, ForceLog, Frame, Imaging, Probe, Specimen, probe_off_top,
+                                 region_outside, write_experiment)
+from app.core.fem import poisson_problem
 from app.core.geometry import Region
 from app.core.mesh import MeshSettings
 from app.core.twin import SpecimenTwin
@@ -110,17 +111,15 @@ def check_spec(spec: SyntheticSpec) -> None:
             fail(name, f"must be positive, got {', '.join(f'{v:g}' for v in vals)}")
 
     positive("size_mm", spec.size_mm, 3)
-    sx, sy, sz = (float(v) for v in spec.size_mm)
-    try:
-        check_poisson(spec.nu)
-    except ElastoidError as exc:
-        fail("nu", str(exc).split(": ", 1)[1])
+    size = tuple(float(v) for v in spec.size_mm)
+    if poisson_problem(spec.nu):
+        fail("nu", poisson_problem(spec.nu))
     positive("face_mm", spec.face_mm, 2)
-    cx, cy = spec.probe_center_mm or (sx / 2, sy / 2)
-    fx, fy = spec.face_mm
-    if cx - fx / 2 < 0 or cy - fy / 2 < 0 or cx + fx / 2 > sx or cy + fy / 2 > sy:
-        fail("face_mm", f"a {fx:g} x {fy:g} mm probe face centred at ({cx:g}, {cy:g}) mm does not lie on the "
-                        f"{sx:g} x {sy:g} mm top face")
+    center = spec.probe_center_mm or (size[0] / 2, size[1] / 2)
+    off = probe_off_top(Probe(tuple(spec.face_mm), tuple(center), (1.0, 0.0, 0.0)), size)
+    if off:
+        fail("face_mm", off)
+    sz = size[2]
     positive("depth_mm", spec.depth_mm)
     if spec.depth_mm >= sz:
         fail("depth_mm", f"the probe cannot travel {spec.depth_mm:g} mm into a specimen {sz:g} mm high")
@@ -145,12 +144,9 @@ def check_spec(spec: SyntheticSpec) -> None:
     names = [r.name for r in (*spec.regions, *spec.hidden_regions)]
     for which, regions in (("regions", spec.regions), ("hidden_regions", spec.hidden_regions)):
         for r in regions:
-            if r.kind == "background":
-                continue
-            lo, hi = r.bounds_mm()
-            if np.any(np.asarray(lo) < -1e-6) or np.any(np.asarray(hi) > np.array([sx, sy, sz]) + 1e-6):
-                fail(which, f"region {r.name!r} reaches outside the {sx:g} x {sy:g} x {sz:g} mm specimen (its bounds "
-                            f"are {np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()} mm)")
+            outside = region_outside(r, size)
+            if outside:
+                fail(which, outside)
     for n in names:
         E = spec.moduli_kPa.get(n)
         if E is None:

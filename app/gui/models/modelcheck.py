@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from app.core.effects.inclusion import place_text
 from app.core.errors import ElastoidError
 
 Work = Callable[[Callable[[str], None], threading.Event], Any]
@@ -236,8 +237,7 @@ def parameters_text(parameters: dict, inclusion: dict | None = None, only: tuple
     if other:
         out.append(", ".join(f"{k} {_num(v)}" for k, v in other))
     if inclusion:
-        c = ", ".join(f"{x:.1f}" for x in inclusion.get("center_mm", ()))
-        out.append(f"inclusion {inclusion.get('name', '')} at ({c}) mm, radius {inclusion.get('radius_mm', 0):.1f} mm")
+        out.append(f"inclusion {inclusion.get('name', '')} at {place_text(inclusion)}")
     return "; ".join(out)
 
 
