@@ -387,19 +387,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("simulate", help="write a synthetic experiment folder (with truth.toml)")
     sp.add_argument("output", type=Path)
-    sp.add_argument("--seed", type=int, default=0)
-    sp.add_argument("--size-mm", default="90,90,96")
+    sp.add_argument("--seed", type=int, default=0, help="random seed of the speckle, the noise and the truth mesh (default 0)")
+    sp.add_argument("--size-mm", default="90,90,96", help="specimen box x,y,z in mm (default: the paper's 90,90,96)")
     sp.add_argument("--inclusion", default="sphere:45,45,66,15",
                     help="sphere:cx,cy,cz,r | box:cx,cy,cz,sx,sy,sz | none (region A)")
     sp.add_argument("--moduli", default="B=18,A=63", help="kPa per region, e.g. B=18,A=63")
-    sp.add_argument("--face-mm", default="40,10")
-    sp.add_argument("--depth-mm", type=float, default=14.8)
+    sp.add_argument("--face-mm", default="40,10", help="probe face, lateral,elevation in mm (default 40,10)")
+    sp.add_argument("--depth-mm", type=float, default=14.8, help="probe travel at the end of the loading, mm (default 14.8)")
     sp.add_argument("--frames-at", default="0,7.4,14.8", help="probe travel of each frame, mm")
-    sp.add_argument("--hold-s", type=float, default=0.0)
-    sp.add_argument("--unload", action="store_true")
-    sp.add_argument("--noise-N", type=float, default=0.02)
-    sp.add_argument("--rows", type=int, default=256)
-    sp.add_argument("--cols", type=int, default=200)
+    sp.add_argument("--hold-s", type=float, default=0.0, help="hold at the full travel, s (default 0; the probe moves at 1 mm/s)")
+    sp.add_argument("--unload", action="store_true", help="unload after the hold, back to zero travel")
+    sp.add_argument("--noise-N", type=float, default=0.02, help="force noise (standard deviation), N (default 0.02)")
+    sp.add_argument("--rows", type=int, default=256, help="image rows (depth), pixels (default 256)")
+    sp.add_argument("--cols", type=int, default=200, help="image columns (lateral), pixels (default 200)")
     sp.add_argument("--truth-mesh-scale", type=float, default=0.7,
                     help="truth mesh size relative to the automatic identification mesh (< 1: finer)")
     sp.add_argument("--effects", default="", help="physical effects in the truth (ids, comma-separated)")
@@ -410,8 +410,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--nu", type=float, default=0.49, help="Poisson's ratio of the truth")
     sp.add_argument("--demo", action="store_true",
                     help="write the bundled demo experiment (its fixed settings; the options above are ignored)")
-    sp.add_argument("--overwrite", action="store_true")
-    sp.add_argument("--quiet", action="store_true")
+    sp.add_argument("--overwrite", action="store_true", help="write into OUTPUT even if it is not empty (files of the same names are replaced)")
+    sp.add_argument("--quiet", action="store_true", help="no progress line")
     sp.set_defaults(func=cmd_simulate)
 
     tp = sub.add_parser("selftest", help="check this installation: one PASS/FAIL line per check",

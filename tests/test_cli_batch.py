@@ -218,6 +218,28 @@ def test_simulate_refuses_what_cannot_be_simulated_before_meshing(tmp_path, caps
     assert not out.exists()
 
 
+@pytest.mark.parametrize("make,words", [
+    (lambda out: (out.mkdir(), (out / "keep.txt").write_text("old")), "already exists and is not empty"),
+    (lambda out: out.write_text("a file"), "is a file, not a folder"),
+])
+def test_simulate_refuses_an_occupied_output_before_meshing(tmp_path, capsys, monkeypatch, make, words):
+    """The output was checked only when the experiment was written, after the
+    truth had been meshed and solved (102 s at the default size)."""
+    import app.core.simulate
+
+    def must_not_mesh(*a, **k):
+        raise AssertionError("meshing started")
+
+    monkeypatch.setattr(app.core.simulate.SpecimenTwin, "build", must_not_mesh)
+    out = tmp_path / "exp"
+    make(out)
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    assert main(["simulate", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"elastoid: {out}: ") and words in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing written, nothing lost
+
+
 @pytest.mark.parametrize("options,words", [
     (["--frames", "0,7"], "--frames: there is no frame 7: the experiment has 3 frames, 0 to 2"),
     (["--frames", "1,1"], "--frames: frame 1 is given twice"),

@@ -549,6 +549,28 @@ def force_csv_text(log: ForceLog) -> str:
     return "\n".join(lines) + "\n"
 
 
+def new_folder_problem(folder: str | Path, overwrite: bool = False) -> str | None:
+    """Why a new experiment cannot be written into ``folder``, or None. Checked
+    before anything is computed or recorded, so a long simulation or a recording
+    never ends in a refusal: a folder that holds something (unless ``overwrite``),
+    a file in its place, or a place where it cannot be created."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        return "is a file, not a folder; choose a new folder"
+    if folder.is_dir():
+        if any(folder.iterdir()) and not overwrite:
+            return "already exists and is not empty; choose a new folder"
+        return None if os.access(folder, os.W_OK) else "cannot be written into: permission denied"
+    parent = folder.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"cannot be created: {parent} is a file"
+    if not os.access(parent, os.W_OK):
+        return f"cannot be created: permission denied in {parent}"
+    return None
+
+
 def write_experiment(folder: str | Path, exp: Experiment, images: dict[str, np.ndarray] | None = None,
                      *, overwrite: bool = False) -> Path:
     """Write ``exp`` as a new folder. ``images`` maps relative paths to arrays
@@ -559,8 +581,9 @@ def write_experiment(folder: str | Path, exp: Experiment, images: dict[str, np.n
     from app.core.images import save_png
 
     folder = Path(folder)
-    if folder.exists() and any(folder.iterdir()) and not overwrite:
-        raise ExperimentError(folder, "", "already exists and is not empty; choose a new folder")
+    problem = new_folder_problem(folder, overwrite)
+    if problem:
+        raise ExperimentError(folder, "", problem)
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "images").mkdir(exist_ok=True)
     for f in exp.frames:

@@ -10,9 +10,9 @@ from typing import Callable
 
 import numpy as np
 
-from app.core.errors import ElastoidError
+from app.core.errors import ElastoidError, ExperimentError
 from app.core.experiment import (Experiment, ForceLog, Frame, Imaging, Probe, Specimen, probe_off_top,
-                                 region_outside, write_experiment)
+                                 new_folder_problem, region_outside, write_experiment)
 from app.core.fem import poisson_problem
 from app.core.geometry import Region
 from app.core.mesh import MeshSettings
@@ -176,6 +176,9 @@ def simulate_experiment(out: str | Path, spec: SyntheticSpec = SyntheticSpec(), 
     """Write a synthetic experiment folder (format 1) with ``truth.toml`` beside it."""
     say = progress or (lambda s: None)
     check_spec(spec)
+    problem = new_folder_problem(out, overwrite)
+    if problem:  # now, not after the minutes of meshing and solving the truth
+        raise ExperimentError(out, "", problem)
     exp = _template(spec)
     from app.core.effects import check
 

@@ -45,6 +45,7 @@ from app.core.experiment import (
     Region,
     Specimen,
     experiment_to_toml,
+    new_folder_problem,
     write_toml_atomic,
 )
 from app.devices.clock import Clock, MonotonicClock
@@ -167,9 +168,9 @@ class Recorder:
 
     def __init__(self, folder: str | Path, template: Experiment, *, name: str | None = None, notes: str = ""):
         self.folder = Path(folder)
-        if self.folder.exists() and any(self.folder.iterdir()):
-            raise DeviceError(f"{self.folder} already exists and is not empty; choose a new folder",
-                              device="recorder")
+        problem = new_folder_problem(self.folder)
+        if problem:
+            raise DeviceError(f"{self.folder} {problem}", device="recorder")
         (self.folder / "images").mkdir(parents=True, exist_ok=True)
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         self.exp = replace(template, name=name or f"{template.name} (recorded {stamp})",

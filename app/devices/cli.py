@@ -161,7 +161,7 @@ def _progress_line(stream):
 
 def run_acquire(args) -> int:
     from app.core.errors import ElastoidError
-    from app.core.experiment import read_experiment
+    from app.core.experiment import new_folder_problem, read_experiment
     from app.devices.acquisition import RampHoldUnload, Rig, SafetyLimits, default_template
     from app.devices.grbl import GrblStage
     from app.devices.imaging import FolderWatcher
@@ -177,8 +177,9 @@ def run_acquire(args) -> int:
     except ValueError as exc:
         print(f"elastoid acquire: {exc}", file=err)
         return EXIT_START
-    if args.out.exists() and any(args.out.iterdir()):
-        print(f"elastoid acquire: {args.out} already exists and is not empty; choose a new folder", file=err)
+    problem = new_folder_problem(args.out)
+    if problem:
+        print(f"elastoid acquire: {args.out} {problem}", file=err)
         return EXIT_START
     stage = sensor = None
     try:

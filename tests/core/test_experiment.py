@@ -263,3 +263,26 @@ def test_any_force_log_gives_a_clear_error_or_loads(tmp_path_factory, rows):
         assert "force.csv" in str(err)
     else:
         assert np.all(np.diff(log.time_s) > 0) and np.all(np.isfinite(log.force_N))
+
+
+def test_a_new_experiment_folder_is_checked_before_anything_is_written(tmp_path):
+    from app.core.experiment import new_folder_problem
+
+    assert new_folder_problem(tmp_path / "new" / "deeper") is None  # created with its parents
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert new_folder_problem(empty) is None
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "old.txt").write_text("kept")
+    assert "not empty" in new_folder_problem(full)
+    assert new_folder_problem(full, overwrite=True) is None
+    a_file = tmp_path / "a_file"
+    a_file.write_text("kept")
+    assert "is a file, not a folder" in new_folder_problem(a_file)
+    assert f"{a_file} is a file" in new_folder_problem(a_file / "sub" / "exp")
+    exp = read_experiment(make_valid(tmp_path / "valid"))
+    with pytest.raises(ExperimentError, match="is a file, not a folder") as info:
+        write_experiment(a_file, exp)
+    assert info.value.file == str(a_file)
+    assert a_file.read_text() == "kept" and (full / "old.txt").read_text() == "kept"

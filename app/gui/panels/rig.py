@@ -22,6 +22,8 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QFileDialog, QFormLayout, Q
                                QLabel, QLineEdit, QPushButton, QScrollArea, QSplitter, QToolButton, QVBoxLayout,
                                QWidget)
 
+from app.core.experiment import new_folder_problem
+
 from ..models.rig import DISP, FORCE, T, TRAVEL, Protocol, RigController, RigSettings
 from ..models.session import SessionModel
 from ..style import STOP_RED, style_plot
@@ -411,8 +413,9 @@ class RigPanel(Panel):
                                        f"{self.frames_at.text()!r}"), "")
             return
         folder = Path(self.out_folder.text()).expanduser()
-        if folder.exists() and any(folder.iterdir()):
-            self.error.emit(ValueError(f"{folder} already exists and is not empty; choose a new folder"), "")
+        problem = new_folder_problem(folder)
+        if problem:
+            self.error.emit(ValueError(f"{folder} {problem}"), "")
             return
         self._save_settings()
         template = self.session.experiment
