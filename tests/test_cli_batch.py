@@ -86,7 +86,10 @@ def test_simulate_a_hidden_inclusion(tmp_path):
     truth = read_truth(out)
     assert truth["effects"] == ["inclusion"] and truth["moduli_kPa"]["H"] == 60.0
     assert truth["hidden_regions"][0]["center_mm"] == [28.0, 20.0, 12.0]
-    assert read_experiment(out).specimen.region_names == ("B", "A")  # the experiment does not describe it
+    exp = read_experiment(out)
+    assert exp.specimen.region_names == ("B", "A")  # the experiment does not describe it
+    # its name says what the experiment describes, not what is hidden (it said "stiff inclusion" whatever the specimen)
+    assert exp.name == "Synthetic phantom, 40 x 40 x 30 mm, region A (sphere) in B"
 
 
 @pytest.mark.parametrize("command", ["identify", "diagnose"])

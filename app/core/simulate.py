@@ -27,7 +27,7 @@ def paper_regions() -> tuple[Region, ...]:
 class SyntheticSpec:
     """What to simulate. Lengths mm, moduli kPa, times s, forces N."""
 
-    name: str = "Synthetic gelatin phantom, stiff inclusion"
+    name: str | None = None  # experiment.toml name (default: the specimen in words, see _default_name)
     size_mm: tuple = (90.0, 90.0, 96.0)
     regions: tuple = field(default_factory=paper_regions)
     moduli_kPa: dict = field(default_factory=lambda: {"B": 18.0, "A": 63.0})
@@ -73,6 +73,17 @@ DEMO_SPEC = SyntheticSpec(
 )
 
 
+def _default_name(spec: SyntheticSpec) -> str:
+    """The specimen in words, e.g. "Synthetic phantom, 90 x 90 x 96 mm, region A
+    (sphere) in B". Only what experiment.toml describes: never a hidden effect."""
+    size = " x ".join(f"{v:g}" for v in spec.size_mm)
+    background, *inside = spec.regions
+    if not inside:
+        return f"Synthetic phantom, {size} mm, one region ({background.name})"
+    listed = ", ".join(f"{r.name} ({r.kind})" for r in inside)
+    return f"Synthetic phantom, {size} mm, region{'s' if len(inside) > 1 else ''} {listed} in {background.name}"
+
+
 def _template(spec: SyntheticSpec) -> Experiment:
     rows, cols = spec.image_shape
     center = spec.probe_center_mm or (spec.size_mm[0] / 2, spec.size_mm[1] / 2)
@@ -80,7 +91,7 @@ def _template(spec: SyntheticSpec) -> Experiment:
     roi = (m, m, cols - m, min(rows - m, int(rows * 0.72)))
     imaging = Imaging(pixel_spacing_mm=tuple(spec.pixel_spacing_mm), probe_face_px=((cols - 1) / 2.0, 0.0),
                       elevation_thickness_mm=1.0, roi_px=roi)
-    return Experiment(name=spec.name, specimen=Specimen(tuple(spec.size_mm), tuple(spec.regions)),
+    return Experiment(name=spec.name or _default_name(spec), specimen=Specimen(tuple(spec.size_mm), tuple(spec.regions)),
                       probe=Probe(tuple(spec.face_mm), tuple(center), (1.0, 0.0, 0.0)), imaging=imaging,
                       frames=(), force_log=ForceLog(np.zeros(2), np.zeros(2), np.zeros(2)),
                       notes=spec.notes or f"simulated by ElastoID (seed {spec.seed})")
