@@ -18,12 +18,15 @@ BASELINE_EFFECTS: tuple[str, ...] = ()
 
 
 def _floats(text: str, n: int | None = None, what: str = "value") -> list[float]:
+    """Comma-separated numbers of the option ``what``; an input error (exit 2)
+    naming the option otherwise (an argparse error here was not caught: a
+    traceback for `--starts a` or `--size-mm a`)."""
     try:
         vals = [float(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{what}: expected comma-separated numbers, got {text!r}") from None
+        raise ElastoidError(f"{what}: expected comma-separated numbers, got {text!r}") from None
     if n is not None and len(vals) != n:
-        raise argparse.ArgumentTypeError(f"{what}: expected {n} numbers, got {text!r}")
+        raise ElastoidError(f"{what}: expected {n} numbers, got {text!r}")
     return vals
 
 
@@ -60,6 +63,17 @@ def _indices(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected comma-separated frame indices like 0,2, got {text!r}") from None
 
 
+def _roi(text: str) -> list[int]:
+    """argparse type: col0,row0,col1,row1, whole pixels."""
+    try:
+        vals = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected four whole numbers col0,row0,col1,row1, got {text!r}") from None
+    if len(vals) != 4:
+        raise argparse.ArgumentTypeError(f"expected four whole numbers col0,row0,col1,row1, got {text!r}")
+    return vals
+
+
 # simulate: the option of each SyntheticSpec field its checks name
 SPEC_OPTIONS = {"size_mm": "--size-mm", "nu": "--nu", "face_mm": "--face-mm", "depth_mm": "--depth-mm",
                 "hold_s": "--hold-s", "force_noise_N": "--noise-N", "frames_at_mm": "--frames-at",
@@ -70,10 +84,11 @@ SPEC_OPTIONS = {"size_mm": "--size-mm", "nu": "--nu", "face_mm": "--face-mm", "d
 def _moduli(text: str) -> dict:
     out = {}
     for part in text.split(","):
-        if "=" not in part:
-            raise argparse.ArgumentTypeError(f"--moduli: expected NAME=kPa pairs like B=18,A=63, got {text!r}")
-        k, v = part.split("=", 1)
-        out[k.strip()] = float(v)
+        k, _, v = part.partition("=")
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            raise ElastoidError(f"--moduli: expected NAME=kPa pairs like B=18,A=63, got {text!r}") from None
     return out
 
 
@@ -166,7 +181,7 @@ def _check_effects(effects: list[str]) -> None:
 
 def cmd_identify(args) -> int:
     from app.core.experiment import read_experiment
-    from app.core.identify import Problem, check_starts, frame_indices, identify
+    from app.core.identify import Problem, check_roi, check_starts, frame_indices, identify
 
     effects = [e for e in (args.effects or "").split(",") if e]
     _check_effects(effects)
@@ -177,7 +192,7 @@ def cmd_identify(args) -> int:
     frames = frame_indices(exp, args.frames, "--frames") if args.frames else None
     bar = TerminalProgress(not args.quiet, len(starts))
     settings = _mesh_settings(args, exp)
-    roi = [int(x) for x in _floats(args.roi, 4, "--roi")] if args.roi else None
+    roi = check_roi(exp, args.roi, "--roi") if args.roi else None
     inclusion = None
     if effects:
         from app.core.diagnose import current_model, locate_inclusion
@@ -367,7 +382,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="NMI estimator of the cost: smooth (partial-volume bins, continuous; default) or hard "
                          "(the paper's fixed bins, equal to skimage's)")
     ip.add_argument("--frames", type=_indices, help="frame indices, the first is the source (default: 0 and every later frame)")
-    ip.add_argument("--roi", help="col0,row0,col1,row1 in pixels (default: the experiment's)")
+    ip.add_argument("--roi", type=_roi, help="col0,row0,col1,row1 in pixels, ends exclusive (default: the "
+                    "experiment's)")
     ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")
     ip.add_argument("--nu", type=_poisson, default=0.49, help="Poisson's ratio (default 0.49)")
     ip.add_argument("--mesh-edge-mm", type=_positive, help="element size far from the probe (default: automatic)")

@@ -203,6 +203,8 @@ def test_identify_with_the_inclusion_effect_locates_meshes_and_fits_it(tmp_path_
     (["--moduli", "B=-3,A=5"], "--moduli", "region 'B' must be positive"),
     (["--inclusion", "sphere:45,45,90,15"], "--inclusion", "reaches outside"),
     (["--hidden", "sphere:45,45,95,5,60"], "--hidden", "reaches outside"),
+    (["--size-mm", "a"], "--size-mm", "expected comma-separated numbers, got 'a'"),  # tracebacks, these two
+    (["--moduli", "B=x"], "--moduli", "expected NAME=kPa pairs"),
 ])
 def test_simulate_refuses_what_cannot_be_simulated_before_meshing(tmp_path, capsys, monkeypatch, options, option,
                                                                    words):
@@ -250,14 +252,23 @@ def test_simulate_refuses_an_occupied_output_before_meshing(tmp_path, capsys, mo
     (["--starts", "0,-5"], "--starts: start moduli must be positive"),
     (["--nu", "0.5"], "argument --nu: Poisson's ratio must lie between -1 and 0.5"),
     (["--mesh-edge-mm", "0"], "argument --mesh-edge-mm: must be positive"),
+    # these ended in tracebacks, or (the 2 x 2 px ROI) ran and reported E_A 27 kPa for 63 as "ok"
+    (["--starts", "a"], "elastoid: --starts: expected comma-separated numbers, got 'a'"),
+    (["--roi", "a,b"], "argument --roi: expected four whole numbers col0,row0,col1,row1, got 'a,b'"),
+    (["--roi", "50,50,40,40"], "--roi: [50, 50, 40, 40] is empty"),
+    (["--roi", "0,0,1000,1000"], "--roi: [0, 0, 1000, 1000] reaches outside the 200 x 256 px images"),
+    (["--roi", "10,10,12,12"], "--roi: [10, 10, 12, 12] is 2 x 2 px; the comparison needs at least 32 x 32 px"),
+    (["--roi", "10,10,12,12", "--effects", "viscoelastic"], "is 2 x 2 px"),
 ])
 def test_identify_refuses_bad_options_before_the_run(capsys, monkeypatch, options, words):
     """--frames 0,7 on three frames silently used frame 1 (the index wrapped), 1,1
     compared a frame with itself, and --starts 0 or --nu 0.5 ended in a traceback."""
+    import app.core.effects.model
     import app.core.identify
 
-    monkeypatch.setattr(app.core.identify.Problem, "from_experiment",
-                        classmethod(lambda *a, **k: (_ for _ in ()).throw(AssertionError("the run started"))))
+    for cls in (app.core.identify.Problem, app.core.effects.model.EffectProblem):
+        monkeypatch.setattr(cls, "from_experiment",
+                            classmethod(lambda *a, **k: (_ for _ in ()).throw(AssertionError("the run started"))))
     try:
         code = main(["identify", str(ROOT / "resources" / "demo"), *options, "--quiet"])
     except SystemExit as exc:  # argparse's own refusals

@@ -36,7 +36,8 @@ from app.core.effects.viscoelastic import prony_force
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import check_poisson, interpolation_matrix
 from app.core.forward import ReducedModel, build_model, local_training_set, region_terms, training_set
-from app.core.identify import BOUNDS_KPA, EvalReport, Problem, Result, check_starts, frame_indices, nelder_mead
+from app.core.identify import (BOUNDS_KPA, EvalReport, Problem, Result, check_roi, check_starts, frame_indices,
+                               nelder_mead)
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 from app.core.solver import single_threaded_blas
 
@@ -92,6 +93,7 @@ class EffectProblem(Problem):
                                 "(app.core.diagnose.locate_inclusion, or a diagnosis)")
         frames = frame_indices(exp, frames)
         nu = check_poisson(nu)
+        check_roi(exp, roi_px)
         if mesh is None and base is not None and base.mesh.region_names == exp.specimen.region_names:
             mesh = base.mesh
         if mesh is None:
