@@ -199,15 +199,20 @@ class _Fields:
 
 
 def read_experiment(folder: str | Path, *, check_images: bool = True) -> Experiment:
-    """Read and validate an experiment folder.
+    """Read and validate an experiment folder (or its experiment.toml, which
+    names the folder as well: users give either).
 
     ``check_images`` opens every frame to check that it exists, decodes, and
     that all frames share one size (and the ROI fits it).
     """
     folder = Path(folder)
+    if folder.name == TOML and folder.is_file():
+        folder = folder.parent
     toml_path = folder / TOML
+    if not folder.exists():
+        raise ExperimentError(folder, "", "does not exist")
     if not folder.is_dir():
-        raise ExperimentError(folder, "", "is not a folder")
+        raise ExperimentError(folder, "", "is not a folder: an experiment is a folder that holds experiment.toml")
     if not toml_path.is_file():
         raise ExperimentError(toml_path, "", "is missing: an experiment folder holds experiment.toml")
     try:

@@ -286,3 +286,14 @@ def test_a_new_experiment_folder_is_checked_before_anything_is_written(tmp_path)
         write_experiment(a_file, exp)
     assert info.value.file == str(a_file)
     assert a_file.read_text() == "kept" and (full / "old.txt").read_text() == "kept"
+
+
+def test_the_experiment_toml_names_its_folder_and_a_missing_folder_says_so(tmp_path):
+    folder = make_valid(tmp_path / "a")
+    exp = read_experiment(folder / "experiment.toml")  # was refused: "is not a folder"
+    assert exp.path == folder and exp.specimen.region_names == ("B", "A")
+    with pytest.raises(ExperimentError, match="does not exist"):
+        read_experiment(tmp_path / "nowhere")
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(ExperimentError, match="is not a folder: an experiment is a folder"):
+        read_experiment(tmp_path / "notes.txt")
