@@ -8,7 +8,8 @@
   face bonded and pushed down). Units: mm, N, MPa (E_MPa = E_kPa / 1000).
 - HTML report: parameters with their uncertainties and references, the cost,
   the identifiability report, the force curve (inline SVG) and the overlays
-  (inline PNG).
+  (inline PNG); with a model check, its versions and their errors (a table and
+  a chart) and the last diagnosis (the verdict, the ranked effects, the evidence).
 """
 
 from __future__ import annotations
@@ -164,15 +165,99 @@ def _force_svg(d_mm, measured_N, model_N, width=560, height=300) -> str:
     return "".join(parts)
 
 
-def write_report_html(path: str | Path, *, experiment, parameters: dict, cost: dict,
-                      standard_error_rel: dict | None = None, identifiability_lines=(), effects=(),
-                      model_force_N=None, overlays=(), mesh_lines=(), nu: float = 0.49) -> Path:
-    """A self-contained HTML report of one identification."""
+def _fmt(v, digits: int = 3) -> str:
+    if v is None or not isinstance(v, (int, float)) or not np.isfinite(v):
+        return "&ndash;"
+    return f"{v:.{digits}g}" if abs(v) < 1000 else f"{v:,.0f}"
+
+
+def _versions_svg(labels, series, width=560, height=220) -> str:
+    """The errors across versions: one polyline per (name, colour, values, unit),
+    each scaled to its own largest value (the axis reads as a fraction of it)."""
+    n = len(labels)
+    L, R, T, B = 45, 15, 44, 40
+    xs = [L + (k + 0.5) * (width - L - R) / max(n, 1) for k in range(n)]
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" '
+             f'font-size="12"><rect width="100%" height="100%" fill="white"/>',
+             f'<rect x="{L}" y="{T}" width="{width - L - R}" height="{height - T - B}" fill="none" stroke="#888"/>']
+    for k in range(3):
+        y = T + k * (height - T - B) / 2
+        parts.append(f'<text x="{L - 6}" y="{y + 4:.1f}" text-anchor="end">{1 - k / 2:g}</text>')
+    for x, lab in zip(xs, labels):
+        parts.append(f'<text x="{x:.1f}" y="{height - B + 16}" text-anchor="middle">{html.escape(lab)}</text>')
+    legend_y = 14
+    for name, colour, values, unit in series:
+        vals = [v if isinstance(v, (int, float)) and np.isfinite(v) else None for v in values]
+        top = max((v for v in vals if v is not None), default=0.0)
+        if top <= 0:
+            continue
+        pts = [(x, T + (1 - v / top) * (height - T - B)) for x, v in zip(xs, vals) if v is not None]
+        parts.append(f'<polyline points="{" ".join(f"{a:.1f},{b:.1f}" for a, b in pts)}" fill="none" '
+                     f'stroke="{colour}" stroke-width="2"/>')
+        parts.extend(f'<circle cx="{a:.1f}" cy="{b:.1f}" r="3.5" fill="{colour}"/>' for a, b in pts)
+        text = f"{name} (1 = {_fmt(top)} {unit})"
+        parts.append(f'<text x="{L}" y="{legend_y}" fill="{colour}">{html.escape(text)}</text>')
+        legend_y += 15
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _model_check_html(mc: dict) -> str:
+    """The model check section: the versions and their errors (as the window's
+    history), the error chart, and the last diagnosis. ``mc`` is plain data (see
+    app.gui.models.modelcheck.report_data)."""
     e = html.escape
+    rows = []
+    for v in mc["versions"]:
+        mark = "&#9654; " if v["current"] else ""
+        note = e(v.get("note") or "") + (f'<br><span style="color:#b26a00">warning: {e(v["warning"])}</span>'
+                                        if v.get("warning") else "")
+        rows.append(f"<tr><td>{mark}{v['index']}</td><td style='text-align:left'>{e(v['label'])}</td>"
+                    f"<td style='text-align:left'>{e(v['parameters'])}</td><td>{_fmt(v.get('force_rms_N'))}</td>"
+                    f"<td>{_fmt(v.get('displacement_rms_px'))}</td><td>{_fmt(v.get('force_excess_N'))}</td>"
+                    f"<td>{_fmt(v.get('displacement_excess_px'))}</td><td>{_fmt(v.get('chi2'), 5)}</td>"
+                    f"<td style='text-align:left'>{note}</td></tr>")
+    labels = [f"{v['index']}: {v['label']}" for v in mc["versions"]]
+    chart = _versions_svg(labels, [
+        ("displacement beyond the noise", "#1f77b4", [v.get("displacement_excess_px") for v in mc["versions"]], "px"),
+        ("force beyond the noise", "#d62728", [v.get("force_excess_N") for v in mc["versions"]], "N")])
+    out = [f"""<h2>Model check</h2>
+<p>Version {mc['current']} is current (&#9654;). The errors are RMS over the force log and the tracked speckle;
+&ldquo;beyond the noise&rdquo; is the part the stated noise model cannot explain (0 for a model as good as the
+data allow).</p>
+<table><tr><th>#</th><th>model</th><th>parameters</th><th>force RMS (N)</th><th>displacement RMS (px)</th>
+<th>force beyond noise (N)</th><th>displacement beyond noise (px)</th><th>chi2</th><th>note</th></tr>
+{"".join(rows)}</table>
+<h3>Error across versions</h3>{chart}"""]
+    d = mc.get("diagnosis")
+    if d is not None:
+        bold = ' style="font-weight:bold"'
+        cands = "".join(
+            f"<tr{bold if c['verdict'] else ''}><td>{c['rank']}</td><td style='text-align:left' title='{e(c['title'])}'>{e(c['effect'])}</td>"
+            f"<td>{e(c['score_text'])}</td><td style='text-align:left'>{e(c['parameters'])}</td>"
+            f"<td style='text-align:left'>{e(c['evidence'])}</td></tr>" for c in d["candidates"])
+        tie = f"<br>Near tie: {e(d['tie'])}." if d.get("tie") else ""
+        out.append(f"""<h3>Last diagnosis (of version {d['version']}, {d['seconds']:.0f} s)</h3>
+<p style="background:#fff6d6;padding:8px"><b>{e(d['head'])}</b>{e(d['rest'])}{tie}</p>
+<p>Noise model: {e(d['noise'])}.</p>
+<table><tr><th>#</th><th>effect</th><th>score (BIC)</th><th>key parameters</th><th>evidence</th></tr>
+{cands}</table>""")
+    return "\n".join(out)
+
+
+def write_report_html(path: str | Path, *, experiment, parameters: dict | None, cost: dict | None = None,
+                      standard_error_rel: dict | None = None, identifiability_lines=(), effects=(),
+                      model_force_N=None, overlays=(), mesh_lines=(), nu: float = 0.49,
+                      model_check: dict | None = None) -> Path:
+    """A self-contained HTML report of one identification and, given
+    ``model_check`` (see :func:`_model_check_html`), of the model check.
+    ``parameters`` None: no identification was run (a model check only)."""
+    e = html.escape
+    cost = cost or {}
     ref = experiment.reference_moduli_kPa(nu)
     se = standard_error_rel or {}
     rows = []
-    for name, val in parameters.items():
+    for name, val in (parameters or {}).items():
         s = se.get(name)
         s_txt = "undetermined" if s is None or not np.isfinite(s) else f"&plusmn;{100 * s:.1f}%"
         region = name[2:-4] if name.startswith("E_") and name.endswith("_kPa") else None
@@ -183,22 +268,28 @@ def write_report_html(path: str | Path, *, experiment, parameters: dict, cost: d
     imgs = "".join(f'<figure><img src="data:image/png;base64,{_png_b64(overlay_rgb(w, t))}"/>'
                    f"<figcaption>{e(cap)}: red target, green warped source</figcaption></figure>"
                    for cap, w, t in overlays)
+    if parameters is None:
+        ident = ("<h2>Parameters</h2><p>No identification was run in the Identification panel; the model "
+                 "check below has the fitted parameters of each version.</p>")
+    else:
+        ident = f"""<h2>Parameters</h2><table><tr><th>parameter</th><th>identified</th><th>standard error</th>
+<th>reference</th></tr>{"".join(rows)}</table>
+<p>Cost: total {cost.get("total", float("nan")):.5f}, NMI {cost.get("nmi", float("nan")):.4f},
+force RMS misfit {cost.get("force_rms_N", float("nan")):.4f} N.</p>
+<h2>Identifiability</h2><pre>{e(chr(10).join(identifiability_lines))}</pre>"""
     doc = f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>ElastoID report: {e(experiment.name)}</title>
 <style>body{{font-family:sans-serif;max-width:980px;margin:2em auto;color:#222}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #ccc;padding:4px 10px;text-align:right}}th{{background:#eef}}figure{{display:inline-block;margin:8px}}
 img{{image-rendering:pixelated;max-width:420px}}pre{{background:#f6f6f6;padding:8px;white-space:pre-wrap}}</style></head><body>
-<h1>ElastoID identification report</h1>
+<h1>ElastoID report</h1>
 <p><b>Experiment:</b> {e(experiment.name)}<br><b>Folder:</b> {e(str(experiment.path or ""))}<br>
 <b>Model:</b> linear elasticity, P2 tetrahedra, Poisson's ratio {nu:g}; effects: {e(", ".join(effects) or "none (baseline)")}<br>
 <b>Made:</b> {datetime.now().isoformat(timespec="seconds")}</p>
-<h2>Parameters</h2><table><tr><th>parameter</th><th>identified</th><th>standard error</th><th>reference</th></tr>
-{"".join(rows)}</table>
-<p>Cost: total {cost.get("total", float("nan")):.5f}, NMI {cost.get("nmi", float("nan")):.4f},
-force RMS misfit {cost.get("force_rms_N", float("nan")):.4f} N.</p>
-<h2>Identifiability</h2><pre>{e(chr(10).join(identifiability_lines))}</pre>
+{ident}
 <h2>Force</h2>{svg}
 <h2>Overlays</h2>{imgs or "<p>(none)</p>"}
-<h2>Mesh</h2><pre>{e(chr(10).join(mesh_lines))}</pre>
+{_model_check_html(model_check) if model_check else ""}
+<h2>Mesh</h2><pre>{e(chr(10).join(mesh_lines)) or "(not meshed in this session)"}</pre>
 </body></html>"""
     Path(path).write_text(doc, encoding="utf-8")
     return Path(path)

@@ -407,9 +407,13 @@ class MainWindow(QMainWindow):
         """Write the report or the calibrated model; asks for a file unless ``path`` is given."""
         from app.core import export as ex
 
+        from .models.modelcheck import report_data
+
         s = self.session
-        if s.outcome is None or s.mesh is None:
-            self._status("run an identification first: the exports hold its result")
+        checked = report_data(self.modelcheck_panel.model.snapshot) if kind == "report" else None
+        if (s.outcome is None or s.mesh is None) and checked is None:
+            self._status("run an identification first: the exports hold its result"
+                         + (" (or, for the report, a model check)" if kind == "report" else ""))
             return None
         if path is None:
             title, name, filt = self._EXPORTS[kind]
@@ -427,10 +431,11 @@ class MainWindow(QMainWindow):
                     warped, target = s.overlay[0], s.overlay[1]
                     overlays.append((f"frame {s.target_frame}", warped, target))
                 o = s.outcome
-                ex.write_report_html(path, experiment=s.experiment, parameters=o.parameters, cost=o.cost,
-                                     standard_error_rel=o.standard_error_rel, identifiability_lines=o.identifiability,
-                                     model_force_N=s.model_force_N, overlays=overlays,
-                                     mesh_lines=s.mesh_quality, nu=nu)
+                ex.write_report_html(path, experiment=s.experiment, parameters=o.parameters if o else None,
+                                     cost=o.cost if o else None, standard_error_rel=o.standard_error_rel if o else None,
+                                     identifiability_lines=o.identifiability if o else (),
+                                     model_force_N=s.model_force_N if o else None, overlays=overlays,
+                                     mesh_lines=s.mesh_quality, nu=nu, model_check=checked)
             elif kind == "vtu":
                 ex.write_vtu(path, s.mesh, s.outcome.parameters, nu)
             else:

@@ -62,3 +62,34 @@ def test_html_report_holds_parameters_force_and_overlays(tmp_path):
     assert "62.10" in text and "63.0" in text and "undetermined" in text and "&plusmn;1.0%" in text
     assert text.count("<polyline") == 2 and "data:image/png;base64," in text
     assert overlay_rgb(w, t).shape == (40, 50, 3)
+
+
+def test_html_report_holds_the_model_check(tmp_path):
+    exp = read_experiment(ROOT / "resources" / "demo")
+    version = dict(label="baseline", parameters="B 15.4 kPa", force_rms_N=0.0198, displacement_rms_px=1.10,
+                   force_excess_N=0.0, displacement_excess_px=0.233, chi2=650.3, note="identified", warning="")
+    mc = {"current": 1, "versions": [
+        dict(version, index=0, current=False),
+        dict(version, index=1, current=True, label="+ inclusion", displacement_excess_px=0.0, chi2=536.6,
+             note="added inclusion", warning="it fits worse <than> version 0")],
+        "diagnosis": {"version": 0, "verdict": "inclusion", "head": "Verdict: inclusion",
+                      "rest": ", an undescribed inclusion. A region ...", "tie": "", "noise": "force: 0.02 N",
+                      "seconds": 108.0, "candidates": [
+                          dict(rank=1, effect="inclusion", title="t", score_text="+88.1", parameters="I 125.7 kPa",
+                               evidence="deforms less", verdict=True),
+                          dict(rank=2, effect="compressibility", title="t", score_text="+8.2", parameters="nu 0.47",
+                               evidence="changes volume", verdict=False)]}}
+    text = write_report_html(tmp_path / "r.html", experiment=exp, parameters=None, model_check=mc,
+                             mesh_lines=()).read_text()
+    assert "No identification was run" in text and "(not meshed in this session)" in text
+    section = text[text.index("<h2>Model check</h2>"):]
+    assert "Version 1 is current" in section and "<td>&#9654; 1</td>" in section and "<td>0</td>" in section
+    assert "warning: it fits worse &lt;than&gt; version 0" in section  # escaped
+    assert section.count("<polyline") == 1  # the force error is 0 in both versions: nothing to chart
+    assert "displacement beyond the noise (1 = 0.233 px)" in section
+    assert "<b>Verdict: inclusion</b>, an undescribed inclusion." in section
+    assert '<tr style="font-weight:bold"><td>1</td>' in section and ">compressibility</td>" in section
+    # without a model check the report is the identification's, as before
+    plain = write_report_html(tmp_path / "p.html", experiment=exp, parameters={"E_B_kPa": 17.9},
+                              cost={"nmi": 1.05}).read_text()
+    assert "<h2>Model check</h2>" not in plain and "17.90" in plain

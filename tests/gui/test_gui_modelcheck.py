@@ -57,7 +57,7 @@ class _Lateness:
         return np.asarray(self.ms)
 
 
-def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment, qtbot, record_property):
+def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment, qtbot, record_property, tmp_path):
     win = make_window()
     panel = win.modelcheck_panel
     assert not panel.identify_button.isEnabled() and not panel.diagnose_button.isEnabled()  # no experiment yet
@@ -190,6 +190,24 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     text = win.log_panel.text.toPlainText()
     assert "model check: trying viscoelastic" in text and "model check: added viscoelastic" in text
     assert win.session.locked_by is None
+
+    # the report keeps the model check (it held only an identification, so a model check could not be kept
+    # anywhere); no identification was run in the Identification panel, and it says so
+    assert win.session.outcome is None
+    report = win.export("report", tmp_path / "report.html").read_text()
+    assert "No identification was run in the Identification panel" in report
+    section = report[report.index("<h2>Model check</h2>"):]
+    assert "Version 2 is current" in section
+    for v in h.versions:
+        assert f"<td>{'&#9654; ' if v.index == 2 else ''}{v.index}</td>" in section
+    assert "+ viscoelastic" in section and "+ probe-slip" in section
+    assert "warning: probe-slip" in section  # the version the diagnosis did not support
+    assert section.count("<polyline") == 2  # the errors across versions: displacement and force
+    d = panel.model.snapshot.diagnosis
+    assert "Last diagnosis (of version 0" in section and "<b>Verdict: viscoelastic</b>" in section
+    for c in d.candidates:
+        assert f">{c.effect}</td>" in section
+    assert "relaxes" in section and "Noise model: " in section
 
 
 def test_identify_with_an_inclusion_locates_it(window, visco_experiment, qtbot, monkeypatch):

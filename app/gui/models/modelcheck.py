@@ -271,6 +271,43 @@ def diagnosis_rows(diagnosis) -> list[dict]:
     return rows
 
 
+def verdict_parts(diagnosis) -> tuple[str, str, str]:
+    """The verdict in words, plain text: (head, the rest, near-tie advice or ''),
+    e.g. ('Verdict: viscoelastic', ', time-dependent relaxation (Prony series). The
+    force relaxes by 16% ...', ''). The panel shows the head in bold; so does the report."""
+    from app.core.effects import INFO
+
+    d = diagnosis
+    if d.verdict == "none":
+        return ("Verdict: none", ". No candidate effect lowers the misfit by more than its parameters cost: the "
+                "current model explains the data as well as the noise allows.", "")
+    c = d.candidate(d.verdict)
+    ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
+    return f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.", d.tie_advice() or ""
+
+
+def report_data(snapshot) -> dict | None:
+    """The model check as plain data for the HTML report (app.core.export): the
+    versions with their errors, which one is current, and the last diagnosis.
+    None before the first version."""
+    h = snapshot.history if snapshot is not None else None
+    if h is None or not len(h):
+        return None
+    versions = history_rows(h)
+    for row, v in zip(versions, h.versions):
+        row["force_excess_N"] = v.misfit.get("force_excess_N")
+        row["displacement_excess_px"] = v.misfit.get("displacement_excess_px")
+    out = {"current": h.current, "versions": versions, "diagnosis": None}
+    d = snapshot.diagnosis
+    if d is not None:
+        head, rest, tie = verdict_parts(d)
+        out["diagnosis"] = {"version": snapshot.diagnosed_version, "verdict": d.verdict, "head": head, "rest": rest,
+                            "tie": tie, "noise": d.noise.describe(), "seconds": d.seconds,
+                            "candidates": [{k: r[k] for k in ("rank", "effect", "title", "score_text", "parameters",
+                                                              "evidence", "verdict")} for r in diagnosis_rows(d)]}
+    return out
+
+
 def history_rows(history) -> list[dict]:
     rows = []
     for v in history.versions:

@@ -34,7 +34,7 @@ from app.core.effects import EFFECT_IDS, INFO
 from app.core.effects.compressibility import NU_NEGLIGIBLE
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
-                                 diagnosis_rows, frame_label, history_rows, parameters_text)
+                                 diagnosis_rows, frame_label, history_rows, parameters_text, verdict_parts)
 from ..models.session import SessionModel
 from ..style import mono_font, region_color, style_plot
 from ..workers import Task
@@ -806,17 +806,9 @@ class ModelCheckPanel(Panel):
             self.noise_label.setText("")
             self.diagnosis_current.setText("")
             return
-        if d.verdict == "none":
-            self.verdict_label.setText("<b>Verdict: none</b>. No candidate effect lowers the misfit by more than "
-                                       "its parameters cost: the current model explains the data as well as the "
-                                       "noise allows.")
-        else:
-            c = d.candidate(d.verdict)
-            ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
-            tie = d.tie_advice()
-            tie = (f"<br><span style='color:#b26a00'>\u26a0 Near tie: {html.escape(tie)}.</span>" if tie else "")
-            self.verdict_label.setText(f"<b>Verdict: {d.verdict}</b>, {html.escape(INFO[d.verdict].title)}. "
-                                       f"{html.escape(ev)}.{tie}")
+        head, rest, tie = verdict_parts(d)
+        tie = f"<br><span style='color:#b26a00'>\u26a0 Near tie: {html.escape(tie)}.</span>" if tie else ""
+        self.verdict_label.setText(f"<b>{html.escape(head)}</b>{html.escape(rest)}{tie}")
         b = d.baseline
         self.diagnosis_current.setText(
             f"Diagnosed version {snap.diagnosed_version} ({', '.join(b.effects) or 'baseline'}) in {d.seconds:.0f} s: "
