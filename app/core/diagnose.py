@@ -1096,7 +1096,45 @@ class ModelCheck:
     def compare(self, index: int | None = None) -> Comparison:
         i = self.history.current if index is None else index
         v = self.history.versions[i]
-        return compare(self._problems[i], v.parameters, self.tracked)
+        return compare(self._problem(i), v.parameters, self.tracked)
+
+    # ---- saved and restored (a session file) ----------------------------------------------
+    def state(self) -> dict:
+        """What :meth:`restored` needs to rebuild this check (JSON-ready): the versions.
+        The models, the tracked speckle and the diagnosis are rebuilt or redone."""
+        return {"history": self.history.to_json_dict()}
+
+    @classmethod
+    def restored(cls, exp, state: dict, *, mesh_settings=None, nu: float = 0.49, progress=None,
+                 cancel=None) -> "ModelCheck":
+        """A check with the saved versions of :meth:`state`, live again: the first
+        version's model is rebuilt to track the speckle as the first identification
+        did (so the versions' errors stay comparable), and the current version's
+        model is rebuilt at its parameters; the others are rebuilt when they are
+        compared or made current."""
+        check = cls(exp, mesh_settings=mesh_settings, nu=nu)
+        history = ModelHistory.from_json_dict(state["history"])
+        if not len(history):
+            return check
+        check.history = history
+        first = history.versions[0]
+        check._problem(0, progress, cancel)
+        (progress or (lambda s: None))("tracking the speckle")
+        check.tracked = track(check._problems[0], first.parameters)
+        check._switch_to(check._problem(history.current, progress, cancel))
+        return check
+
+    def _problem(self, index: int, progress=None, cancel=None) -> EffectProblem:
+        """Version ``index``'s model (rebuilt for a restored check)."""
+        if index not in self._problems:
+            v = self.history.versions[index]
+            (progress or (lambda s: None))(f"rebuilding the model of version {index} ({v.label})")
+            problem = current_model(self.exp, v.effects, mesh_settings=self.mesh_settings, inclusion=v.inclusion,
+                                    base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
+            if "hyperelastic" in v.effects:  # its correction, at the version's fitted moduli as the fit left it
+                problem.refresh_hyperelastic(v.parameters, progress, cancel)
+            self._problems[index] = problem
+        return self._problems[index]
 
     def diagnose(self, candidates=None, *, progress=None, cancel=None) -> Diagnosis:
         v = self.history.current_version
@@ -1129,9 +1167,10 @@ class ModelCheck:
         return self._add_version(c.problem, c.parameters, c.cost, f"added {effect}", c.inclusion,
                                  support_warning(d, c, self.history.current))
 
-    def revert(self, index: int) -> ModelVersion:
+    def revert(self, index: int, progress=None, cancel=None) -> ModelVersion:
+        problem = self._problem(index, progress, cancel)
         self.history = self.history.reverted(index)
-        self._switch_to(self._problems[index])
+        self._switch_to(problem)
         return self.history.current_version
 
     def _switch_to(self, problem) -> None:

@@ -378,13 +378,15 @@ class MainWindow(QMainWindow):
 
     def open_session(self, path) -> bool:
         try:
-            self.session.load_session(path)
+            checked = self.session.load_session(path)
         except Exception as exc:
             self._error(exc)
             return False
         self._add_recent("session", Path(path))
         self._update_title()
         log.info("opened session %s", path)
+        if checked:
+            self.modelcheck_panel.restore(checked)
         return True
 
     def open_session_dialog(self) -> None:
@@ -464,7 +466,7 @@ class MainWindow(QMainWindow):
 
     def _save_to(self, path: Path) -> bool:
         try:
-            self.session.save_session(path)
+            self.session.save_session(path, self.modelcheck_panel.model.state(self.session))
         except Exception as exc:
             self._error(exc)
             return False

@@ -147,6 +147,21 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     mc.revert(0)
     assert mc.identify(("viscoelastic",)).warning == ""
 
+    # saved (a session file) and restored: the same versions, live again
+    import json
+
+    again = ModelCheck.restored(exp, json.loads(json.dumps(mc.state())), mesh_settings=ID_MESH)
+    assert again.history == mc.history and again.effects == ("viscoelastic",)
+    assert np.allclose(again.tracked.noise_px, mc.tracked.noise_px)  # the speckle tracked as the first time
+    for i in (again.history.current, 1, 2):  # the current version's model, then others rebuilt when asked
+        new, old = again.compare(i), mc.compare(i)
+        assert np.allclose(new.force_model_N, old.force_model_N, rtol=1e-6, atol=1e-9), i
+        assert np.allclose(new.frames[-1].model_px, old.frames[-1].model_px, atol=1e-6), i
+    assert again.revert(2).effects == ("probe-slip",) and again.effects == ("probe-slip",)
+    d = again.diagnose(candidates=("viscoelastic",))
+    assert d.baseline.effects == ("probe-slip",)
+    assert again.add("viscoelastic").parent == 2 and len(again.history) == len(mc.history) + 1
+
 
 def test_a_candidate_of_a_hyperelastic_model_refreshes_warm_and_release_keeps_what_is_shared(tmp_path_factory):
     """When the current model has the hyperelastic effect, a candidate on the same

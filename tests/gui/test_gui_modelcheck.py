@@ -4,6 +4,7 @@ revert; cancel; a responsive window during the diagnosis. And the Qt-free helper
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -208,6 +209,45 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     for c in d.candidates:
         assert f">{c.effect}</td>" in section
     assert "relaxes" in section and "Noise model: " in section
+
+
+def test_a_saved_session_keeps_the_model_check(make_window, visco_experiment, qtbot, tmp_path):
+    """The session file kept nothing of a model check: its versions are saved, and
+    opening the session rebuilds them (models, tracked speckle), live: the
+    current version's comparison, revert, a new version."""
+    win = make_window()
+    panel = _prepare(win, visco_experiment)
+    _click_and_wait(qtbot, panel, panel.identify_button)
+    panel.identify_boxes["viscoelastic"].setChecked(True)
+    _click_and_wait(qtbot, panel, panel.identify_button)
+    assert not win.error_boxes, [b.informativeText() for b in win.error_boxes]
+    h = panel.model.history
+    assert len(h) == 2 and h.current == 1
+    _, f_saved = panel.force_curves["time"][1].getData()
+    path = tmp_path / "work.json"
+    assert win._save_to(path)
+    assert json.loads(path.read_text())["model_check"]["history"]["current"] == 1
+
+    other = make_window()
+    assert other.open_session(path)
+    mc = other.modelcheck_panel
+    assert mc.running and "Restoring" in mc.state.text()
+    wait_task_done(qtbot, mc, 180)
+    assert not other.error_boxes, [b.informativeText() for b in other.error_boxes]
+    assert mc.model.history == h and mc.model.snapshot.diagnosis is None
+    assert "restored 2 saved versions" in mc.state.text() and "version 1" in mc.version_label.text()
+    assert mc.history_table.rowCount() == 2 and mc.history_table.item(1, 0).text().startswith("\u25b6")
+    _, f = mc.force_curves["time"][1].getData()
+    assert np.allclose(f, f_saved, rtol=1e-6, atol=1e-9)  # the same model, rebuilt
+    assert mc.diagnose_button.isEnabled()
+    mc.history_table.selectRow(0)
+    _click_and_wait(qtbot, mc, mc.revert_button, 120)  # version 0's model, rebuilt when asked
+    assert mc.model.history.current == 0 and not other.error_boxes
+    # a session whose model check is out of date (another ROI) keeps none
+    c0, r0, c1, r1 = win.session.roi_px or (10, 10, 100, 80)
+    win.session.set_roi((c0 + 2, r0, c1, r1))
+    assert panel.model.stale(win.session) and win._save_to(tmp_path / "stale.json")
+    assert "model_check" not in json.loads((tmp_path / "stale.json").read_text())
 
 
 def test_identify_with_an_inclusion_locates_it(window, visco_experiment, qtbot, monkeypatch):

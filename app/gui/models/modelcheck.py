@@ -177,11 +177,39 @@ class ModelCheckModel:
             raise ElastoidError(f"there is no version {index}")
 
         def work(progress, cancel):
-            v = check.revert(index)
+            v = check.revert(index, progress, cancel)
             progress(f"version {index} is current again; comparing it with the measurements")
             cmp = check.compare()
             return (check, inputs, Snapshot(check.history, cmp, prev.diagnosis, prev.diagnosed_version,
                                                  "revert", f"reverted to version {index}: {v.label}"))
+
+        return work
+
+    def state(self, session) -> dict | None:
+        """The versions to keep in a session file (app.core.diagnose.ModelCheck.state's
+        form), or None: no version yet, or versions made for other inputs."""
+        if self.snapshot is None or self.history is None or not len(self.history) or self.stale(session):
+            return None
+        return {"history": self.history.to_json_dict()}
+
+    def restore_work(self, session, state: dict) -> Work:
+        """Rebuild a saved model check (:meth:`state`) for the session's inputs."""
+        from app.core.diagnose import ModelCheck
+
+        inputs = self.inputs_of(session)
+        if inputs is None:
+            raise ElastoidError("open an experiment first")
+        exp, ms, nu = session.analysis_experiment(), session.effective_mesh_settings(), float(session.identification.nu)
+
+        def work(progress, cancel):
+            progress("rebuilding the saved model check")
+            check = ModelCheck.restored(exp, state, mesh_settings=ms, nu=nu, progress=progress, cancel=cancel)
+            progress("comparing the model with the measurements")
+            cmp = check.compare()
+            v = check.history.current_version
+            return (check, inputs, Snapshot(check.history, cmp, None, None, "restore",
+                                            f"restored {len(check.history)} saved versions; version {v.index} "
+                                            f"({v.label}) is current: {_errors_text(v.misfit)}"))
 
         return work
 

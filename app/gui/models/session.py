@@ -418,7 +418,7 @@ class SessionModel:
             self.deformed_changed.emit()
 
     # ---- session files -----------------------------------------------------------------
-    def to_json(self, session_path: Path | None = None) -> dict:
+    def to_json(self, session_path: Path | None = None, model_check: dict | None = None) -> dict:
         if self.experiment is None:
             raise SessionError(session_path or "session", "experiment", "no experiment is open")
         exp_path = Path(self.experiment.path).resolve()
@@ -434,21 +434,25 @@ class SessionModel:
         d["mesh_settings"] = asdict(self.mesh_settings) if self.mesh_settings is not None else None  # None: automatic
         d["identification"] = self.identification.to_json()
         d["result"] = self.outcome.to_json() if self.outcome else None
+        if model_check:  # the model check's versions (see ModelCheckModel.state)
+            d["model_check"] = model_check
         return _jsonable(d)
 
-    def save_session(self, path: str | Path) -> Path:
-        """Write the session JSON (the experiment folder is only referred to, never written)."""
+    def save_session(self, path: str | Path, model_check: dict | None = None) -> Path:
+        """Write the session JSON (the experiment folder is only referred to, never written),
+        with the model check's versions when given."""
         path = Path(path)
         if self.experiment is not None and path.resolve().parent == Path(self.experiment.path).resolve():
             raise SessionError(path, "", "sessions are not saved inside the experiment folder; choose another place")
-        text = json.dumps(self.to_json(path), indent=2)
+        text = json.dumps(self.to_json(path, model_check), indent=2)
         tmp = path.with_name(f".{path.name}.tmp")
         tmp.write_text(text, encoding="utf-8")
         tmp.replace(path)
         self.session_path = path
         return path
 
-    def load_session(self, path: str | Path) -> None:
+    def load_session(self, path: str | Path) -> dict | None:
+        """Open a session file; returns the model check it kept (to rebuild), or None."""
         path = Path(path)
         try:
             d = json.loads(path.read_text(encoding="utf-8"))
@@ -480,9 +484,13 @@ class SessionModel:
                 self.set_identification(self._default_identification(self.specimen, ident))
             if d.get("result"):
                 self.set_outcome(IdentificationOutcome.from_json(d["result"]))
+            checked = d.get("model_check")
+            if checked is not None and not (isinstance(checked, dict) and isinstance(checked.get("history"), dict)):
+                raise SessionError(path, "model_check", "must hold the model check's history")
         except (KeyError, TypeError, ValueError) as exc:
             raise SessionError(path, "", f"has a field ElastoID cannot use: {exc}") from None
         self.session_path = path
+        return checked
 
 
 def _relpath(target: Path, start: Path) -> str:

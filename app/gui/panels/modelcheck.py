@@ -47,7 +47,8 @@ LOCK_REASON = "a model check is running"
 MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
 SUSPECT = "#9e9e9e"  # a difference at a block that disagrees with its neighbours
 VERDICT_BG = "#fff3c4"
-ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting"}
+ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting",
+           "restore": "Restoring the saved model check"}
 
 
 def _item(text: str, *, bold: bool = False, tip: str = "", align=None) -> QTableWidgetItem:
@@ -535,6 +536,10 @@ class ModelCheckPanel(Panel):
         if sel is not None:
             self.add(sel["effect"])
 
+    def restore(self, state: dict) -> None:
+        """Rebuild the model check a session file kept (its versions; diagnose again for a diagnosis)."""
+        self._start("restore", lambda: self.model.restore_work(self.session, state))
+
     def revert(self, index: int) -> None:
         self._start("revert", lambda: self.model.revert_work(int(index)))
 
@@ -587,7 +592,8 @@ class ModelCheckPanel(Panel):
         self.busy.emit(f"Model check: {ACTIONS[action].lower()}", 0, 0)
         log.info("model check: %s", {"identify": f"identify with {', '.join(self.chosen_effects()) or 'no effect'}",
                                      "diagnose": f"diagnose, candidates {', '.join(self.chosen_candidates())}",
-                                     "add": "add an effect", "revert": "revert"}[action])
+                                     "add": "add an effect", "revert": "revert",
+                                     "restore": "restore the saved versions"}[action])
         self._refresh_enabled()
         self.task.start()
 
@@ -611,6 +617,8 @@ class ModelCheckPanel(Panel):
         if snap.action == "diagnose":
             self.tabs.setCurrentIndex(1)
         elif snap.action == "add":
+            self.tabs.setCurrentIndex(2)
+        elif snap.action == "restore":
             self.tabs.setCurrentIndex(2)
         elif snap.action == "identify" and len(snap.history) == 1:
             self.tabs.setCurrentIndex(0)
