@@ -268,6 +268,12 @@ def write_report_html(path: str | Path, *, experiment, parameters: dict | None, 
     imgs = "".join(f'<figure><img src="data:image/png;base64,{_png_b64(overlay_rgb(w, t))}"/>'
                    f"<figcaption>{e(cap)}: red target, green warped source</figcaption></figure>"
                    for cap, w, t in overlays)
+    model_line = f"linear elasticity, P2 tetrahedra, Poisson's ratio {nu:g}; effects: " + \
+        e(", ".join(effects) or "none (baseline)")
+    if parameters is None and model_check:
+        current = next(v for v in model_check["versions"] if v["current"])
+        model_line = (f"the model check's current version, {current['index']} ({e(current['label'])}); P2 "
+                      f"tetrahedra, Poisson's ratio {nu:g}")
     if parameters is None:
         ident = ("<h2>Parameters</h2><p>No identification was run in the Identification panel; the model "
                  "check below has the fitted parameters of each version.</p>")
@@ -283,13 +289,13 @@ td,th{{border:1px solid #ccc;padding:4px 10px;text-align:right}}th{{background:#
 img{{image-rendering:pixelated;max-width:420px}}pre{{background:#f6f6f6;padding:8px;white-space:pre-wrap}}</style></head><body>
 <h1>ElastoID report</h1>
 <p><b>Experiment:</b> {e(experiment.name)}<br><b>Folder:</b> {e(str(experiment.path or ""))}<br>
-<b>Model:</b> linear elasticity, P2 tetrahedra, Poisson's ratio {nu:g}; effects: {e(", ".join(effects) or "none (baseline)")}<br>
+<b>Model:</b> {model_line}<br>
 <b>Made:</b> {datetime.now().isoformat(timespec="seconds")}</p>
 {ident}
 <h2>Force</h2>{svg}
 <h2>Overlays</h2>{imgs or "<p>(none)</p>"}
 {_model_check_html(model_check) if model_check else ""}
-<h2>Mesh</h2><pre>{e(chr(10).join(mesh_lines)) or "(not meshed in this session)"}</pre>
+<h2>Mesh</h2><pre>{e(chr(10).join(mesh_lines)) or "(no identification mesh in this session)"}</pre>
 </body></html>"""
     Path(path).write_text(doc, encoding="utf-8")
     return Path(path)

@@ -436,7 +436,8 @@ class MainWindow(QMainWindow):
                 ex.write_report_html(path, experiment=s.experiment, parameters=o.parameters if o else None,
                                      cost=o.cost if o else None, standard_error_rel=o.standard_error_rel if o else None,
                                      identifiability_lines=o.identifiability if o else (),
-                                     model_force_N=s.model_force_N if o else None, overlays=overlays,
+                                     model_force_N=s.model_force_N if o else self.modelcheck_panel.model_force_N(),
+                                     overlays=overlays,
                                      mesh_lines=s.mesh_quality, nu=nu, model_check=checked)
             elif kind == "vtu":
                 ex.write_vtu(path, s.mesh, s.outcome.parameters, nu)

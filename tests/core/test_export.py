@@ -81,7 +81,8 @@ def test_html_report_holds_the_model_check(tmp_path):
                                evidence="changes volume", verdict=False)]}}
     text = write_report_html(tmp_path / "r.html", experiment=exp, parameters=None, model_check=mc,
                              mesh_lines=()).read_text()
-    assert "No identification was run" in text and "(not meshed in this session)" in text
+    assert "No identification was run" in text and "(no identification mesh in this session)" in text
+    assert "<b>Model:</b> the model check's current version, 1 (+ inclusion)" in text
     section = text[text.index("<h2>Model check</h2>"):]
     assert "Version 1 is current" in section and "<td>&#9654; 1</td>" in section and "<td>0</td>" in section
     assert "warning: it fits worse &lt;than&gt; version 0" in section  # escaped

@@ -197,6 +197,9 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     assert win.session.outcome is None
     report = win.export("report", tmp_path / "report.html").read_text()
     assert "No identification was run in the Identification panel" in report
+    assert "the model check's current version, 2 (+ probe-slip)" in report
+    before = report[:report.index("<h2>Model check</h2>")]
+    assert before.count("<polyline") == 2  # the force: measured, and the current version's model
     section = report[report.index("<h2>Model check</h2>"):]
     assert "Version 2 is current" in section
     for v in h.versions:

@@ -536,6 +536,12 @@ class ModelCheckPanel(Panel):
         if sel is not None:
             self.add(sel["effect"])
 
+    def model_force_N(self):
+        """The current version's force over the log (its comparison), or None."""
+        snap = self.model.snapshot
+        cmp = snap.comparison if snap is not None else None
+        return None if cmp is None else cmp.force_model_N
+
     def restore(self, state: dict) -> None:
         """Rebuild the model check a session file kept (its versions; diagnose again for a diagnosis)."""
         self._start("restore", lambda: self.model.restore_work(self.session, state))
