@@ -47,6 +47,7 @@ LOCK_REASON = "a model check is running"
 MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
 SUSPECT = "#9e9e9e"  # a difference at a block that disagrees with its neighbours
 VERDICT_BG = "#fff3c4"
+MEASURED_GREY, MODEL_ORANGE = "#555555", "#d55e00"  # the force curves
 ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting",
            "restore": "Restoring the saved model check"}
 
@@ -205,18 +206,22 @@ class ModelCheckPanel(Panel):
         vsplit = QSplitter(Qt.Vertical)
         self.force_graphics = pg.GraphicsLayoutWidget()
         self.force_graphics.setMinimumHeight(150)
-        self.force_time = self.force_graphics.addPlot(row=0, col=0, title="Force over the log: measured and model")
+        # the curves are named in the titles: in plots this short a legend box hid part of them
+        named = (f"<span style='color:{MEASURED_GREY}'>measured</span> and "
+                 f"<span style='color:{MODEL_ORANGE}'>model (dashed)</span>")
+        self.force_time = self.force_graphics.addPlot(row=0, col=0, title=f"Force over the log: {named}")
         self.force_time.setLabel("bottom", "time", units="s")
         self.force_time.setLabel("left", "force", units="N")
-        self.force_travel = self.force_graphics.addPlot(row=0, col=1, title="Force vs probe travel")
+        self.force_travel = self.force_graphics.addPlot(row=0, col=1, title=f"Force vs probe travel: {named}")
         self.force_travel.setLabel("bottom", "probe travel", units="mm")
         self.force_travel.setLabel("left", "force", units="N")
         self.force_curves = {}
         for key, plot in (("time", self.force_time), ("travel", self.force_travel)):
             style_plot(plot)
-            plot.addLegend(offset=(-5, 5), labelTextSize="8pt", brush=pg.mkBrush(255, 255, 255, 210))
-            self.force_curves[key] = (plot.plot([], [], pen=pg.mkPen("#8a8a8a", width=1), name="measured"),
-                                      plot.plot([], [], pen=pg.mkPen("#d55e00", width=2), name="model"))
+            # the model dashed over the measured force, which a model that fits would otherwise hide
+            self.force_curves[key] = (plot.plot([], [], pen=pg.mkPen(MEASURED_GREY, width=1.5), name="measured"),
+                                      plot.plot([], [], pen=pg.mkPen(MODEL_ORANGE, width=2, style=Qt.DashLine),
+                                                name="model"))
         vsplit.addWidget(self.force_graphics)
 
         frame_w = QWidget()
