@@ -11,6 +11,20 @@ REGION_COLORS = ["#b8c4d6", "#d55e00", "#0072b2", "#009e73", "#cc79a7", "#e69f00
 START_COLORS = ["#0072b2", "#d55e00", "#009e73", "#cc79a7", "#e69f00", "#56b4e9", "#000000", "#f0e442"]
 ACCENT = "#1f5fa8"
 STOP_RED = "#c62828"
+# measured and modelled force: the model dashed over the measured curve (a model that
+# fits hid a solid one), both named in the plot's title (a legend box hid the curves
+# in these short plots)
+MEASURED_GREY, MODEL_ORANGE = "#555555", "#d55e00"
+FORCE_KEY = (f"<span style='color:{MEASURED_GREY}'>measured</span> and "
+             f"<span style='color:{MODEL_ORANGE}'>model (dashed)</span>")
+
+
+def force_pens():
+    """(measured, model) pens of the force plots."""
+    import pyqtgraph as pg
+    from PySide6.QtCore import Qt
+
+    return pg.mkPen(MEASURED_GREY, width=1.5), pg.mkPen(MODEL_ORANGE, width=2, style=Qt.DashLine)
 
 
 def region_color(index: int) -> str:

@@ -16,13 +16,14 @@ from dataclasses import replace
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QFormLayout, QGroupBox, QHBoxLayout,
                                QHeaderView, QLabel, QLineEdit, QPlainTextEdit, QProgressBar, QPushButton, QSplitter,
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from ..models.identification import IdentificationJob, _accepts
 from ..models.session import COSTS, IdentificationSettings, SessionModel
-from ..style import mono_font, start_color, style_plot
+from ..style import FORCE_KEY, force_pens, mono_font, start_color, style_plot
 from ..workers import Task
 from .base import Panel
 from .common import hint, ispin, red_green, scrolled, spin
@@ -164,7 +165,7 @@ class IdentificationPanel(Panel):
         self.run_button.clicked.connect(self.run)
         self.cancel_button.clicked.connect(self.cancel)
         sl.addWidget(run)
-        starts_box = QGroupBox("Starts (the best of each; bold: the best overall)")
+        starts_box = QGroupBox("Starts (the best of each, in the plots' colours; bold: the best overall)")
         stl = QVBoxLayout(starts_box)
         self.starts_table = QTableWidget(0, 0)
         self.starts_table.verticalHeader().setVisible(False)
@@ -230,24 +231,24 @@ class IdentificationPanel(Panel):
         self.best_marker = pg.ScatterPlotItem([], [], symbol="star", size=14, brush="#ffd400", pen=pg.mkPen("#333"))
         self.best_marker.setZValue(10)
         self.cost_plot.addItem(self.best_marker)
-        self.cost_legend = self.cost_plot.addLegend(offset=(-5, 5), labelTextSize="8pt")
-        self.force_plot = g.addPlot(row=1, col=0, title="Force: measured and model")
+        # no legend: six starts made it taller than the plot (cut) or, in columns, as wide (over
+        # the curves); the starts run in turn, left to right, and the Starts table has their colours
+        self.force_plot = g.addPlot(row=1, col=0, title=f"Force: {FORCE_KEY}")
         self.force_plot.setLabel("bottom", "probe travel", units="mm")
         self.force_plot.setLabel("left", "force", units="N")
         style_plot(self.force_plot)
-        self.force_plot.addLegend(offset=(5, 5), labelTextSize="8pt")
         self.param_plots: dict[str, pg.PlotItem] = {}
         refs = self.session.reference_kPa()
         n = max(1, len(names))
         for i, name in enumerate(names):
             p = g.addPlot(row=i, col=1, rowspan=2 if n == 1 else 1,
-                          title=f"{name} per start" + (" (dashed: reference)" if name in refs else ""))
+                          title=f"{name} per start")  # the reference line is labelled (the title was cut)
             p.setLabel("bottom", "evaluation within the start")
             p.setLabel("left", name.replace("_kPa", ""), units="kPa")
             style_plot(p)
             if name in refs:
                 p.addItem(pg.InfiniteLine(refs[name], angle=0, pen=pg.mkPen("#222", width=1.5, style=Qt.DashLine),
-                                          label=f"reference {refs[name]:g}", labelOpts={"position": 0.85, "color": "#222"}))
+                                          label=f"reference {refs[name]:g}", labelOpts={"position": 0.6, "color": "#222"}))
             self.param_plots[name] = p
         if n > 2:
             g.removeItem(self.force_plot)
@@ -525,6 +526,8 @@ class IdentificationPanel(Panel):
             vals += [f"{cost.get('total', math.nan):.5f}", f"{cost.get('nmi', math.nan):.4f}", f"{st.get('evaluations', '')}"]
             for j, v in enumerate(vals):
                 item = QTableWidgetItem(v)
+                if j == 0:  # the key to the plots' colours
+                    item.setForeground(QColor(start_color(i)))
                 if i == best:
                     f = item.font()
                     f.setBold(True)
@@ -625,8 +628,9 @@ class IdentificationPanel(Panel):
             t, measured, model = result.force
             s.model_force_N = model  # kept for the report
             d = s.experiment.force_log.displacement_mm
-            self.force_plot.plot(d, measured, pen=pg.mkPen("#8a8a8a", width=1), name="measured")
-            self.force_plot.plot(d, model, pen=pg.mkPen("#d55e00", width=2), name="model")
+            pen_measured, pen_model = force_pens()
+            self.force_plot.plot(d, measured, pen=pen_measured, name="measured")
+            self.force_plot.plot(d, model, pen=pen_model, name="model")
         self.progress.setValue(1000)
         self.progress.setFormat(f"done - {result.outcome.evaluations} evaluations")
         text = ", ".join(f"{k} = {v:.1f}" for k, v in result.outcome.parameters.items())

@@ -36,7 +36,7 @@ from app.core.effects.compressibility import NU_NEGLIGIBLE
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
                                  diagnosis_rows, frame_label, history_rows, parameters_text, verdict_parts)
 from ..models.session import SessionModel
-from ..style import mono_font, region_color, style_plot
+from ..style import FORCE_KEY, force_pens, mono_font, region_color, style_plot
 from ..workers import Task
 from .base import Panel
 from .common import hint, ispin, normalized, scrolled
@@ -47,7 +47,6 @@ LOCK_REASON = "a model check is running"
 MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
 SUSPECT = "#9e9e9e"  # a difference at a block that disagrees with its neighbours
 VERDICT_BG = "#fff3c4"
-MEASURED_GREY, MODEL_ORANGE = "#555555", "#d55e00"  # the force curves
 ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting",
            "restore": "Restoring the saved model check"}
 
@@ -206,22 +205,18 @@ class ModelCheckPanel(Panel):
         vsplit = QSplitter(Qt.Vertical)
         self.force_graphics = pg.GraphicsLayoutWidget()
         self.force_graphics.setMinimumHeight(150)
-        # the curves are named in the titles: in plots this short a legend box hid part of them
-        named = (f"<span style='color:{MEASURED_GREY}'>measured</span> and "
-                 f"<span style='color:{MODEL_ORANGE}'>model (dashed)</span>")
-        self.force_time = self.force_graphics.addPlot(row=0, col=0, title=f"Force over the log: {named}")
+        self.force_time = self.force_graphics.addPlot(row=0, col=0, title=f"Force over the log: {FORCE_KEY}")
         self.force_time.setLabel("bottom", "time", units="s")
         self.force_time.setLabel("left", "force", units="N")
-        self.force_travel = self.force_graphics.addPlot(row=0, col=1, title=f"Force vs probe travel: {named}")
+        self.force_travel = self.force_graphics.addPlot(row=0, col=1, title=f"Force vs probe travel: {FORCE_KEY}")
         self.force_travel.setLabel("bottom", "probe travel", units="mm")
         self.force_travel.setLabel("left", "force", units="N")
         self.force_curves = {}
         for key, plot in (("time", self.force_time), ("travel", self.force_travel)):
             style_plot(plot)
-            # the model dashed over the measured force, which a model that fits would otherwise hide
-            self.force_curves[key] = (plot.plot([], [], pen=pg.mkPen(MEASURED_GREY, width=1.5), name="measured"),
-                                      plot.plot([], [], pen=pg.mkPen(MODEL_ORANGE, width=2, style=Qt.DashLine),
-                                                name="model"))
+            measured, model = force_pens()
+            self.force_curves[key] = (plot.plot([], [], pen=measured, name="measured"),
+                                      plot.plot([], [], pen=model, name="model"))
         vsplit.addWidget(self.force_graphics)
 
         frame_w = QWidget()
