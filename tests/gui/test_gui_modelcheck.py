@@ -232,9 +232,13 @@ def test_a_saved_session_keeps_the_model_check(make_window, visco_experiment, qt
     assert json.loads(path.read_text())["model_check"]["history"]["current"] == 1
 
     other = make_window()
+    # opened while a model check runs there (it is cancelled): the restore waits for it, then runs
+    mc = _prepare(other, visco_experiment)
+    qtbot.mouseClick(mc.identify_button, Qt.LeftButton)
+    assert mc.running
     assert other.open_session(path)
-    mc = other.modelcheck_panel
-    assert mc.running and "Restoring" in mc.state.text()
+    assert mc.running and "Waiting for the last task to stop" in mc.state.text()
+    qtbot.waitUntil(lambda: mc.running and "Restoring" in mc.state.text(), timeout=60_000)
     wait_task_done(qtbot, mc, 180)
     assert not other.error_boxes, [b.informativeText() for b in other.error_boxes]
     assert mc.model.history == h and mc.model.snapshot.diagnosis is None

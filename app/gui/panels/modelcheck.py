@@ -97,6 +97,7 @@ class ModelCheckPanel(Panel):
         self._action = ""
         self._gen = 0
         self._owns_lock = False
+        self._pending_restore: dict | None = None  # a session's model check, waiting for a task to end
         self._t_start = 0.0
         self._updating = False
         self._build()
@@ -451,6 +452,7 @@ class ModelCheckPanel(Panel):
 
     # ---- session -> view ----------------------------------------------------------------------
     def _on_experiment(self, *_) -> None:
+        self._pending_restore = None  # for the previous experiment (a session opens it before restoring)
         if self.task is not None:  # its result is for the previous experiment
             self._gen += 1
             self.task.cancel()
@@ -543,7 +545,12 @@ class ModelCheckPanel(Panel):
         return None if cmp is None else cmp.force_model_N
 
     def restore(self, state: dict) -> None:
-        """Rebuild the model check a session file kept (its versions; diagnose again for a diagnosis)."""
+        """Rebuild the model check a session file kept (its versions; diagnose again for a diagnosis).
+        While a task still runs (opening the session cancelled it), the restore waits for its end."""
+        if self.task is not None:
+            self._pending_restore = state
+            self.state.setText("Waiting for the last task to stop, then restoring the saved model check...")
+            return
         self._start("restore", lambda: self.model.restore_work(self.session, state))
 
     def revert(self, index: int) -> None:
@@ -653,6 +660,9 @@ class ModelCheckPanel(Panel):
         self.progress.setFormat("idle")
         self.busy.emit("", 0, 0)
         self._refresh_enabled()
+        pending, self._pending_restore = self._pending_restore, None
+        if pending is not None:
+            self.restore(pending)
 
     def shutdown(self) -> None:
         self.cancel()
