@@ -30,12 +30,23 @@ def _floats(text: str, n: int | None = None, what: str = "value") -> list[float]
     return vals
 
 
-def _positive(text: str) -> float:
-    """argparse type: a positive number."""
+def _float(text: str) -> float:
     try:
-        v = float(text)
+        return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+def _ints(text: str, expected: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+
+
+def _positive(text: str) -> float:
+    """argparse type: a positive number."""
+    v = _float(text)
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"must be positive, got {text}")
     return v
@@ -45,10 +56,7 @@ def _poisson(text: str) -> float:
     """argparse type: a Poisson's ratio (-1 < nu < 0.5)."""
     from app.core.fem import poisson_problem
 
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    v = _float(text)
     why = poisson_problem(v)
     if why:
         raise argparse.ArgumentTypeError(why)
@@ -57,20 +65,15 @@ def _poisson(text: str) -> float:
 
 def _indices(text: str) -> list[int]:
     """argparse type: comma-separated frame indices."""
-    try:
-        return [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated frame indices like 0,2, got {text!r}") from None
+    return _ints(text, "comma-separated frame indices like 0,2")
 
 
 def _roi(text: str) -> list[int]:
     """argparse type: col0,row0,col1,row1, whole pixels."""
-    try:
-        vals = [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected four whole numbers col0,row0,col1,row1, got {text!r}") from None
+    expected = "four whole numbers col0,row0,col1,row1"
+    vals = _ints(text, expected)
     if len(vals) != 4:
-        raise argparse.ArgumentTypeError(f"expected four whole numbers col0,row0,col1,row1, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return vals
 
 

@@ -1068,8 +1068,7 @@ class ModelCheck:
         if "inclusion" in effects and inclusion is None:
             inclusion = locate_inclusion(self.exp, effects, mesh_settings=self.mesh_settings, nu=self.nu,
                                          progress=progress, cancel=cancel)
-        problem = current_model(self.exp, effects, mesh_settings=self.mesh_settings, inclusion=inclusion,
-                                base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
+        problem = self._build(effects, inclusion, progress, cancel)
         res = identify_with_effects(problem, starts_kPa, cancel=cancel)
         if self.tracked is None:
             self.tracked = track(problem, res.parameters)
@@ -1118,19 +1117,23 @@ class ModelCheck:
             return check
         check.history = history
         first = history.versions[0]
-        check._problem(0, progress, cancel)
+        first_problem = check._problem(0, progress, cancel)
         (progress or (lambda s: None))("tracking the speckle")
-        check.tracked = track(check._problems[0], first.parameters)
+        check.tracked = track(first_problem, first.parameters)
         check._switch_to(check._problem(history.current, progress, cancel))
         return check
+
+    def _build(self, effects, inclusion, progress, cancel) -> EffectProblem:
+        """The model with ``effects`` for this check's experiment (sharing what it can with the current one)."""
+        return current_model(self.exp, effects, mesh_settings=self.mesh_settings, inclusion=inclusion,
+                             base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
 
     def _problem(self, index: int, progress=None, cancel=None) -> EffectProblem:
         """Version ``index``'s model (rebuilt for a restored check)."""
         if index not in self._problems:
             v = self.history.versions[index]
             (progress or (lambda s: None))(f"rebuilding the model of version {index} ({v.label})")
-            problem = current_model(self.exp, v.effects, mesh_settings=self.mesh_settings, inclusion=v.inclusion,
-                                    base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
+            problem = self._build(v.effects, v.inclusion, progress, cancel)
             if "hyperelastic" in v.effects:  # its correction, at the version's fitted moduli as the fit left it
                 problem.refresh_hyperelastic(v.parameters, progress, cancel)
             self._problems[index] = problem

@@ -109,12 +109,13 @@ def frame_indices(exp, frames=None, what: str = "frames") -> tuple[int, ...]:
 MIN_ROI_PX = 32
 
 
-def check_roi(exp, roi_px=None, what: str = "ROI") -> tuple[int, int, int, int]:
+def check_roi(exp, roi_px=None, what: str = "ROI", shape=None) -> tuple[int, int, int, int]:
     """The region of interest a cost compares: ``roi_px`` (col0, row0, col1, row1,
     ends exclusive) or the experiment's default, checked against frame 0's size
     before anything is meshed. ElastoidError naming ``what`` when it is not inside
-    the images or smaller than MIN_ROI_PX each way."""
-    rows, cols = exp.image(0).shape[:2]
+    the images or smaller than MIN_ROI_PX each way. ``shape``: the frames' (rows,
+    columns) when known (else frame 0 is read for it)."""
+    rows, cols = (shape if shape is not None else exp.image(0).shape)[:2]
     roi = tuple(roi_px) if roi_px is not None else default_roi(exp, (rows, cols))
     if len(roi) != 4 or any(isinstance(v, bool) or int(v) != v for v in roi):
         raise ElastoidError(f"{what}: expected four whole numbers col0,row0,col1,row1, got {list(roi)}")
@@ -154,7 +155,7 @@ class Problem:
         self.force_sigma_N = force_noise_N(self.log_F)
         img0 = exp.image(frames[0])
         self.image_shape = img0.shape
-        self.roi = check_roi(exp, roi_px)
+        self.roi = check_roi(exp, roi_px, shape=img0.shape)
         c0, r0, c1, r1 = self.roi
         self._setup_control_points()
         grid = WarpGrid(c0, r0, c1, r1)
