@@ -124,7 +124,8 @@ class RampHoldUnload:
             raise ValueError(f"depth {self.depth_mm:g} mm is beyond the travel limit {limits.travel_limit_mm:g} mm")
         bad = [f for f in self.frames_at_mm if not 0 <= f <= self.depth_mm]
         if bad:
-            raise ValueError(f"frames_at_mm {bad} lie outside 0..{self.depth_mm:g} mm")
+            raise ValueError(f"frames at {', '.join(f'{f:g}' for f in bad)} mm of travel lie outside 0..{self.depth_mm:g} "
+                             "mm (from contact to the depth)")
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,8 @@ import sys
 import threading
 from pathlib import Path
 
+from app.cli import _non_negative, _positive
+
 EXIT_OK, EXIT_START, EXIT_SAFETY, EXIT_FAULT, EXIT_STOPPED = 0, 1, 3, 4, 130
 
 
@@ -126,17 +128,23 @@ def add_acquire_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--force", required=True, help="force sensor port")
     p.add_argument("--out", required=True, type=Path, help="new experiment folder to write")
     p.add_argument("--template", type=Path, help="experiment folder whose specimen/probe/imaging to copy")
-    p.add_argument("--depth-mm", type=float, default=5.0)
-    p.add_argument("--speed-mm-s", type=float, default=0.5)
-    p.add_argument("--hold-s", type=float, default=10.0)
+    p.add_argument("--depth-mm", type=_positive, default=5.0, help="travel from contact to press to (mm, default 5)")
+    p.add_argument("--speed-mm-s", type=_positive, default=0.5, help="loading speed (mm/s, default 0.5)")
+    p.add_argument("--hold-s", type=_non_negative, default=10.0, help="hold at depth (s, default 10)")
     p.add_argument("--no-unload", action="store_true", help="stay at depth after the hold")
-    p.add_argument("--frames-at", type=_csv_floats, default=(0.0,), help="displacements (mm) to capture frames at")
-    p.add_argument("--force-limit-N", type=float, default=10.0)
-    p.add_argument("--travel-limit-mm", type=float, default=20.0)
-    p.add_argument("--rate-hz", type=float, default=100.0, help="force sample rate")
-    p.add_argument("--approach-speed-mm-s", type=float, default=0.5)
-    p.add_argument("--contact-threshold-N", type=float, default=0.05)
-    p.add_argument("--max-approach-mm", type=float, default=20.0)
+    p.add_argument("--frames-at", type=_csv_floats, default=(0.0,),
+                   help="displacements from contact (mm, 0 to --depth-mm) to capture frames at (default 0)")
+    p.add_argument("--force-limit-N", type=_positive, default=10.0,
+                   help="force that stops the stage (N, default 10)")
+    p.add_argument("--travel-limit-mm", type=_positive, default=20.0,
+                   help="travel from contact that stops the stage (mm, default 20)")
+    p.add_argument("--rate-hz", type=_positive, default=100.0, help="force sample rate (Hz, default 100)")
+    p.add_argument("--approach-speed-mm-s", type=_positive, default=0.5,
+                   help="speed while finding contact (mm/s, default 0.5)")
+    p.add_argument("--contact-threshold-N", type=_positive, default=0.05,
+                   help="force that marks contact (N, default 0.05)")
+    p.add_argument("--max-approach-mm", type=_positive, default=20.0,
+                   help="travel allowed to find contact (mm, default 20)")
     p.add_argument("--no-find-contact", action="store_true", help="the probe is at contact now: zero here")
     p.add_argument("--axis", default="Z", choices=("X", "Y", "Z"))
     p.add_argument("--into-specimen", type=int, default=-1, choices=(-1, 1),

@@ -112,6 +112,32 @@ def test_acquire_reports_a_port_that_is_not_there(tmp_path, capsys):
     assert main(["acquire", "--stage", "x", "--force", "y", "--out", str(tmp_path / "o"), "--depth-mm", "30"]) == 1
 
 
+@pytest.mark.parametrize("args, says", [
+    (["--depth-mm", "-3"], "argument --depth-mm: must be positive, got -3"),
+    (["--speed-mm-s", "0"], "argument --speed-mm-s: must be positive, got 0"),
+    (["--hold-s", "-1"], "argument --hold-s: must not be negative, got -1"),
+    (["--force-limit-N", "x"], "argument --force-limit-N: expected a number, got 'x'"),
+    (["--rate-hz", "nan"], "argument --rate-hz: must be positive, got nan"),
+    (["--frames-at", "0,a"], "argument --frames-at: expected numbers separated by commas"),
+])
+def test_acquire_names_the_option_a_bad_value_came_in(tmp_path, capsys, args, says):
+    """Refused before any port is opened or folder made, naming the option (they
+    were named as the protocol's fields: 'depth_mm must be positive')."""
+    out = tmp_path / "o"
+    with pytest.raises(SystemExit) as exc:
+        main(["acquire", "--stage", "/dev/does-not-exist", "--force", "loop://", "--out", str(out), *args])
+    assert exc.value.code == 2 and says in capsys.readouterr().err and not out.exists()
+
+
+def test_acquire_refuses_frames_beyond_the_depth(tmp_path, capsys):
+    out = tmp_path / "o"
+    code = main(["acquire", "--stage", "/dev/does-not-exist", "--force", "loop://", "--out", str(out),
+                 "--depth-mm", "5", "--frames-at", "0,2.5,6"])
+    err = capsys.readouterr().err
+    assert code == 1 and "frames at 6 mm of travel lie outside 0..5 mm" in err and not out.exists()
+    assert "cannot open port" not in err  # refused before the ports
+
+
 def test_specimen_hook_without_an_experiment():
     m = specimen_force_model(None, (), contact_mm=1.5)
     assert isinstance(m, NonlinearSpring) and m.contact_mm == 1.5
