@@ -294,6 +294,29 @@ class Candidate:
     # (scoring_reference)
     reference: dict | None = None
     negligible: str = ""  # why the fitted effect is physically no finding, whatever it removes ("" if it is one)
+    # read back from a session file (Diagnosis.from_state): fitted when the diagnosis ran,
+    # its model (``problem``) is rebuilt when it is added
+    restored: bool = False
+
+    @property
+    def fitted(self) -> bool:
+        """The effect was fitted (it has a score, and a model or one to rebuild)."""
+        return (self.problem is not None or self.restored) and math.isfinite(self.score)
+
+    def state(self) -> dict:
+        """Everything but the model, JSON-ready, for :meth:`from_state` (a session file)."""
+        return {"effect": self.effect, "effects": list(self.effects), "parameters": self.parameters,
+                "cost": self.cost, "misfit": self.misfit, "n_parameters": self.n_parameters,
+                "score": float(self.score), "evidence": self.evidence, "inclusion": self.inclusion,
+                "seconds": self.seconds, "material": self.material, "signature": self.signature,
+                "reference": self.reference, "negligible": self.negligible,
+                "fitted": self.problem is not None or self.restored}
+
+    @classmethod
+    def from_state(cls, d: dict) -> "Candidate":
+        d = dict(d)
+        fitted = bool(d.pop("fitted", False))
+        return cls(**{**d, "effects": tuple(d["effects"])}, restored=fitted)
 
     @property
     def explanation(self) -> str:
@@ -384,6 +407,13 @@ class TieBreak:
         """The effect that yields to the winner, or "" when the joint fit does not tell."""
         return next(e for e in self.effects if e != self.winner) if self.winner else ""
 
+    def state(self) -> dict:
+        return {"effects": list(self.effects), "joint": self.joint.state(), "yields": self.yields}
+
+    @classmethod
+    def from_state(cls, d: dict) -> "TieBreak":
+        return cls(tuple(d["effects"]), Candidate.from_state(d["joint"]), dict(d["yields"]))
+
     def to_json_dict(self) -> dict:
         return {"effects": list(self.effects), "parameters": self.joint.parameters,
                 "chi2": round(float(self.joint.misfit["chi2"]), 3),
@@ -466,6 +496,23 @@ class Diagnosis:
                 f"separate the two. Use what you know of the setup: {INFO[self.verdict].title}, or "
                 f"{INFO[r].title}? Or record frames closer in strain (about 2% apart): their "
                 f"tracking is more precise, and the two effects' patterns stand out better")
+
+    def state(self) -> dict:
+        """The diagnosis without its models and fields, JSON-ready (a session file):
+        enough to show it again and to add a candidate (:meth:`ModelCheck.add`
+        rebuilds the candidate's model)."""
+        return {"experiment": self.experiment, "baseline": self.baseline.state(),
+                "candidates": [c.state() for c in self.candidates], "verdict": self.verdict,
+                "noise": {**asdict(self.noise), "pair_sigma_px": list(self.noise.pair_sigma_px)},
+                "seconds": self.seconds, "tie_break": None if self.tie_break is None else self.tie_break.state()}
+
+    @classmethod
+    def from_state(cls, d: dict) -> "Diagnosis":
+        noise = NoiseModel(**{**d["noise"], "pair_sigma_px": tuple(d["noise"]["pair_sigma_px"])})
+        tb = d.get("tie_break")
+        return cls(d["experiment"], Candidate.from_state(d["baseline"]),
+                   [Candidate.from_state(c) for c in d["candidates"]], d["verdict"], noise, float(d["seconds"]),
+                   tie_break=None if tb is None else TieBreak.from_state(tb))
 
     def rank_of(self, effect: str) -> int:
         """1-based rank of an effect among the candidates."""
@@ -1038,6 +1085,15 @@ class ModelHistory:
         return cls(vs, int(d["current"]))
 
 
+def check_state(history: ModelHistory, diagnosis: Diagnosis | None, diagnosed_version: int | None) -> dict:
+    """A model check as a session file keeps it (JSON-ready; :meth:`ModelCheck.restored`
+    reads it): the versions, and the last diagnosis with the version it was made for."""
+    out = {"history": history.to_json_dict()}
+    if diagnosis is not None and diagnosed_version is not None:
+        out["diagnosis"] = {"version": int(diagnosed_version), **diagnosis.state()}
+    return out
+
+
 class ModelCheck:
     """The model check of one experiment, Qt-free: identify the current model,
     compare it with the measurements, diagnose, add the verdict, revert.
@@ -1098,10 +1154,15 @@ class ModelCheck:
         return compare(self._problem(i), v.parameters, self.tracked)
 
     # ---- saved and restored (a session file) ----------------------------------------------
+    @property
+    def diagnosed_version(self) -> int | None:
+        """The version the last diagnosis was made for (None without one)."""
+        return self._diagnosed if self.last_diagnosis is not None else None
+
     def state(self) -> dict:
-        """What :meth:`restored` needs to rebuild this check (JSON-ready): the versions.
-        The models, the tracked speckle and the diagnosis are rebuilt or redone."""
-        return {"history": self.history.to_json_dict()}
+        """What :meth:`restored` needs to rebuild this check (JSON-ready): the
+        versions and the last diagnosis (see :func:`check_state`)."""
+        return check_state(self.history, self.last_diagnosis, self.diagnosed_version)
 
     @classmethod
     def restored(cls, exp, state: dict, *, mesh_settings=None, nu: float = 0.49, progress=None,
@@ -1110,7 +1171,8 @@ class ModelCheck:
         version's model is rebuilt to track the speckle as the first identification
         did (so the versions' errors stay comparable), and the current version's
         model is rebuilt at its parameters; the others are rebuilt when they are
-        compared or made current."""
+        compared or made current. The last diagnosis is shown again as it was; a
+        candidate added from it has its model rebuilt at its fitted parameters."""
         check = cls(exp, mesh_settings=mesh_settings, nu=nu)
         history = ModelHistory.from_json_dict(state["history"])
         if not len(history):
@@ -1121,22 +1183,28 @@ class ModelCheck:
         (progress or (lambda s: None))("tracking the speckle")
         check.tracked = track(first_problem, first.parameters)
         check._switch_to(check._problem(history.current, progress, cancel))
+        saved = state.get("diagnosis")
+        if saved is not None and 0 <= saved.get("version", -1) < len(history):
+            check.last_diagnosis = Diagnosis.from_state(saved)
+            check._diagnosed = int(saved["version"])
         return check
 
-    def _build(self, effects, inclusion, progress, cancel) -> EffectProblem:
-        """The model with ``effects`` for this check's experiment (sharing what it can with the current one)."""
-        return current_model(self.exp, effects, mesh_settings=self.mesh_settings, inclusion=inclusion,
-                             base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
+    def _build(self, effects, inclusion, progress, cancel, parameters=None) -> EffectProblem:
+        """The model with ``effects`` for this check's experiment (sharing what it can
+        with the current one). With ``parameters`` (a fitted model rebuilt), a
+        hyperelastic correction is refreshed at its moduli, where the fit left it."""
+        problem = current_model(self.exp, effects, mesh_settings=self.mesh_settings, inclusion=inclusion,
+                                base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
+        if parameters is not None and "hyperelastic" in effects:
+            problem.refresh_hyperelastic(parameters, progress, cancel)
+        return problem
 
     def _problem(self, index: int, progress=None, cancel=None) -> EffectProblem:
         """Version ``index``'s model (rebuilt for a restored check)."""
         if index not in self._problems:
             v = self.history.versions[index]
             (progress or (lambda s: None))(f"rebuilding the model of version {index} ({v.label})")
-            problem = self._build(v.effects, v.inclusion, progress, cancel)
-            if "hyperelastic" in v.effects:  # its correction, at the version's fitted moduli as the fit left it
-                problem.refresh_hyperelastic(v.parameters, progress, cancel)
-            self._problems[index] = problem
+            self._problems[index] = self._build(v.effects, v.inclusion, progress, cancel, v.parameters)
         return self._problems[index]
 
     def diagnose(self, candidates=None, *, progress=None, cancel=None) -> Diagnosis:
@@ -1150,9 +1218,10 @@ class ModelCheck:
         self._diagnosed = self.history.current
         return self.last_diagnosis
 
-    def add(self, effect: str | None = None) -> ModelVersion:
+    def add(self, effect: str | None = None, *, progress=None, cancel=None) -> ModelVersion:
         """Add an effect (default: the last diagnosis' verdict) as a new version,
-        with the candidate's fitted parameters."""
+        with the candidate's fitted parameters (its model rebuilt there when the
+        diagnosis was read back from a session file)."""
         d = self.last_diagnosis
         if d is None:
             raise ElastoidError("diagnose first")
@@ -1165,8 +1234,11 @@ class ModelCheck:
         if effect not in [c.effect for c in d.candidates]:
             raise ElastoidError(f"{effect} was not tried in the last diagnosis")
         c = d.candidate(effect)
-        if c.problem is None:
+        if not c.fitted:
             raise ElastoidError(f"{effect} could not be fitted")
+        if c.problem is None:  # a restored diagnosis: the candidate's model, rebuilt
+            (progress or (lambda s: None))(f"rebuilding the model with {effect}")
+            c.problem = self._build(c.effects, c.inclusion, progress, cancel, c.parameters)
         return self._add_version(c.problem, c.parameters, c.cost, f"added {effect}", c.inclusion,
                                  support_warning(d, c, self.history.current))
 

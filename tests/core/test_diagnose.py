@@ -160,7 +160,21 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     assert again.revert(2).effects == ("probe-slip",) and again.effects == ("probe-slip",)
     d = again.diagnose(candidates=("viscoelastic",))
     assert d.baseline.effects == ("probe-slip",)
-    assert again.add("viscoelastic").parent == 2 and len(again.history) == len(mc.history) + 1
+    # the last diagnosis is saved too: read back as it was, and a candidate is added
+    # from it without diagnosing again (its model rebuilt at the fitted parameters)
+    saved = json.loads(json.dumps(again.state()))
+    assert saved["diagnosis"]["version"] == 2
+    third = ModelCheck.restored(exp, saved, mesh_settings=ID_MESH)
+    rd = third.last_diagnosis
+    assert third.diagnosed_version == 2 and rd.verdict == d.verdict and rd.lines() == d.lines()
+    assert rd.to_json_dict() == d.to_json_dict()
+    assert rd.candidate("viscoelastic").problem is None and rd.candidate("viscoelastic").fitted
+    v_new = again.add("viscoelastic")
+    assert v_new.parent == 2 and len(again.history) == len(mc.history) + 1
+    v_re = third.add("viscoelastic")
+    assert v_re.parent == 2 and v_re.parameters == v_new.parameters and v_re.warning == v_new.warning
+    assert v_re.misfit["chi2"] == pytest.approx(v_new.misfit["chi2"], rel=1e-6)
+    assert ModelCheck(exp).state() == {"history": {"current": -1, "versions": []}}  # no diagnosis, none saved
 
 
 def test_a_candidate_of_a_hyperelastic_model_refreshes_warm_and_release_keeps_what_is_shared(tmp_path_factory):

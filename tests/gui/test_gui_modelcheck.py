@@ -215,21 +215,26 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
 
 
 def test_a_saved_session_keeps_the_model_check(make_window, visco_experiment, qtbot, tmp_path):
-    """The session file kept nothing of a model check: its versions are saved, and
-    opening the session rebuilds them (models, tracked speckle), live: the
-    current version's comparison, revert, a new version."""
+    """The session file kept nothing of a model check: its versions and its last
+    diagnosis are saved, and opening the session rebuilds them (models, tracked
+    speckle), live: the diagnosis as it was, its verdict added without diagnosing
+    again (the same model as added in the first window), revert."""
     win = make_window()
     panel = _prepare(win, visco_experiment)
     _click_and_wait(qtbot, panel, panel.identify_button)
-    panel.identify_boxes["viscoelastic"].setChecked(True)
-    _click_and_wait(qtbot, panel, panel.identify_button)
+    for e, cb in panel.candidate_boxes.items():
+        cb.setChecked(e == "viscoelastic")
+    _click_and_wait(qtbot, panel, panel.diagnose_button)
     assert not win.error_boxes, [b.informativeText() for b in win.error_boxes]
-    h = panel.model.history
-    assert len(h) == 2 and h.current == 1
-    _, f_saved = panel.force_curves["time"][1].getData()
+    h, d = panel.model.history, panel.model.snapshot.diagnosis
+    assert len(h) == 1 and d.verdict == "viscoelastic"
     path = tmp_path / "work.json"
     assert win._save_to(path)
-    assert json.loads(path.read_text())["model_check"]["history"]["current"] == 1
+    saved = json.loads(path.read_text())["model_check"]
+    assert saved["history"]["current"] == 0 and saved["diagnosis"]["version"] == 0
+    assert saved["diagnosis"]["verdict"] == "viscoelastic"
+    _click_and_wait(qtbot, panel, panel.add_verdict_button, 60)  # the first window's version 1
+    _, f_added = panel.force_curves["time"][1].getData()
 
     other = make_window()
     # opened while a model check runs there (it is cancelled): the restore waits for it, then runs
@@ -238,18 +243,28 @@ def test_a_saved_session_keeps_the_model_check(make_window, visco_experiment, qt
     assert mc.running
     assert other.open_session(path)
     assert mc.running and "Waiting for the last task to stop" in mc.state.text()
-    # the restore starts as the cancelled identification ends (in the same slot), and ends with both versions
-    qtbot.waitUntil(lambda: mc.task is None and mc.model.n_versions == 2, timeout=240_000)
+    # the restore starts as the cancelled identification ends (in the same slot), and ends with the version
+    qtbot.waitUntil(lambda: mc.task is None and mc.model.n_versions == 1, timeout=240_000)
     assert "model check: restore the saved versions" in other.log_panel.text.toPlainText()
     assert not other.error_boxes, [b.informativeText() for b in other.error_boxes]
-    assert mc.model.history == h and mc.model.snapshot.diagnosis is None
-    assert "restored 2 saved versions" in mc.state.text() and "version 1" in mc.version_label.text()
-    assert mc.history_table.rowCount() == 2 and mc.history_table.item(1, 0).text().startswith("\u25b6")
+    assert mc.model.history == h and "restored 1 saved version" in mc.state.text()
+    assert mc.history_table.rowCount() == 1 and mc.history_table.item(0, 0).text().startswith("\u25b6")
+    # the diagnosis, as it was
+    rd = mc.model.snapshot.diagnosis
+    assert rd.to_json_dict() == d.to_json_dict() and mc.model.diagnosis_is_current()
+    assert "Verdict: viscoelastic" in mc.verdict_label.text() and mc.diagnosis_table.rowCount() == 1
+    assert mc.diagnosis_table.item(0, 1).text() == "viscoelastic" and "relaxes" in mc.diagnosis_table.item(0, 4).text()
+    assert mc.add_verdict_button.isEnabled() and "viscoelastic" in mc.add_verdict_button.text()
+    _click_and_wait(qtbot, mc, mc.add_verdict_button, 120)  # its model rebuilt at the fitted parameters
+    assert not other.error_boxes, [b.informativeText() for b in other.error_boxes]
+    (v_re, v_first) = (x.versions[1] for x in (mc.model.history, panel.model.history))
+    assert (v_re.effects, v_re.parameters, v_re.warning) == (v_first.effects, v_first.parameters, v_first.warning)
+    for k, x in v_first.misfit.items():  # the model rebuilt (its reduced basis trained again), the same misfit
+        assert v_re.misfit[k] == pytest.approx(x, rel=1e-5, abs=1e-9), k
     _, f = mc.force_curves["time"][1].getData()
-    assert np.allclose(f, f_saved, rtol=1e-6, atol=1e-9)  # the same model, rebuilt
-    assert mc.diagnose_button.isEnabled()
+    assert np.allclose(f, f_added, rtol=1e-6, atol=1e-9)  # the same model as added in the first window
     mc.history_table.selectRow(0)
-    _click_and_wait(qtbot, mc, mc.revert_button, 120)  # version 0's model, rebuilt when asked
+    _click_and_wait(qtbot, mc, mc.revert_button, 120)
     assert mc.model.history.current == 0 and not other.error_boxes
     # a session whose model check is out of date (another ROI) keeps none
     c0, r0, c1, r1 = win.session.roi_px or (10, 10, 100, 80)

@@ -161,7 +161,7 @@ class ModelCheckModel:
 
         def work(progress, cancel):
             progress(f"adding {effect}")
-            v = check.add(effect)
+            v = check.add(effect, progress=progress, cancel=cancel)
             progress("comparing the model with the measurements")
             cmp = check.compare()
             message = f"added {effect}: version {v.index}, {_errors_text(v.misfit)}"
@@ -186,11 +186,14 @@ class ModelCheckModel:
         return work
 
     def state(self, session) -> dict | None:
-        """The versions to keep in a session file (app.core.diagnose.ModelCheck.state's
-        form), or None: no version yet, or versions made for other inputs."""
+        """The versions and the last diagnosis to keep in a session file
+        (app.core.diagnose.check_state), or None: no version yet, or versions made
+        for other inputs."""
+        from app.core.diagnose import check_state
+
         if self.snapshot is None or self.history is None or not len(self.history) or self.stale(session):
             return None
-        return {"history": self.history.to_json_dict()}
+        return check_state(self.history, self.snapshot.diagnosis, self.snapshot.diagnosed_version)
 
     def restore_work(self, session, state: dict) -> Work:
         """Rebuild a saved model check (:meth:`state`) for the session's inputs."""
@@ -206,10 +209,13 @@ class ModelCheckModel:
             check = ModelCheck.restored(exp, state, mesh_settings=ms, nu=nu, progress=progress, cancel=cancel)
             progress("comparing the model with the measurements")
             cmp = check.compare()
-            v = check.history.current_version
-            return (check, inputs, Snapshot(check.history, cmp, None, None, "restore",
-                                            f"restored {len(check.history)} saved versions; version {v.index} "
-                                            f"({v.label}) is current: {_errors_text(v.misfit)}"))
+            v, n = check.history.current_version, len(check.history)
+            what = f"{n} saved version{'s' if n != 1 else ''}"
+            if check.last_diagnosis is not None:
+                what += f" and the diagnosis of version {check.diagnosed_version}"
+            return (check, inputs, Snapshot(check.history, cmp, check.last_diagnosis, check.diagnosed_version,
+                                            "restore", f"restored {what}; version {v.index} ({v.label}) is current: "
+                                            f"{_errors_text(v.misfit)}"))
 
         return work
 
@@ -295,7 +301,7 @@ def diagnosis_rows(diagnosis) -> list[dict]:
         rows.append({"rank": i, "effect": c.effect, "title": INFO[c.effect].title if c.effect in INFO else "",
                      "score": c.score, "score_text": score_text(c.score), "parameters": key_parameters(c),
                      "evidence": c.explanation or "", "verdict": c.effect == diagnosis.verdict,
-                     "fitted": c.problem is not None and math.isfinite(c.score)})
+                     "fitted": c.fitted})
     return rows
 
 

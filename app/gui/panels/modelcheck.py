@@ -545,7 +545,7 @@ class ModelCheckPanel(Panel):
         return None if cmp is None else cmp.force_model_N
 
     def restore(self, state: dict) -> None:
-        """Rebuild the model check a session file kept (its versions; diagnose again for a diagnosis).
+        """Rebuild the model check a session file kept (its versions and its last diagnosis).
         While a task still runs (opening the session cancelled it), the restore waits for its end."""
         if self.task is not None:
             self._pending_restore = state
