@@ -52,14 +52,6 @@ def _positive(text: str) -> float:
     return v
 
 
-def _non_negative(text: str) -> float:
-    """argparse type: a number, zero or more."""
-    v = _float(text)
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"must not be negative, got {text}")
-    return v
-
-
 def _poisson(text: str) -> float:
     """argparse type: a Poisson's ratio (-1 < nu < 0.5)."""
     from app.core.fem import poisson_problem

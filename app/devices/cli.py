@@ -12,12 +12,11 @@ it, 4 a device fault ended it, 130 stopped with Ctrl-C, 1 it could not start.
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
 from pathlib import Path
-
-from app.cli import _non_negative, _positive
 
 EXIT_OK, EXIT_START, EXIT_SAFETY, EXIT_FAULT, EXIT_STOPPED = 0, 1, 3, 4, 130
 
@@ -27,6 +26,32 @@ def _csv_floats(text: str) -> tuple[float, ...]:
         return tuple(float(x) for x in text.split(",") if x.strip())
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}") from None
+
+
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
+# argparse types (argparse names the option in its error); app.cli has its own, which
+# the devices layer may not import
+def _positive(text: str) -> float:
+    v = _number(text)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return v
+
+
+def _non_negative(text: str) -> float:
+    v = _number(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {text}")
+    return v
 
 
 def _effects(text: str) -> tuple[str, ...]:

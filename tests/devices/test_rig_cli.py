@@ -117,7 +117,7 @@ def test_acquire_reports_a_port_that_is_not_there(tmp_path, capsys):
     (["--speed-mm-s", "0"], "argument --speed-mm-s: must be positive, got 0"),
     (["--hold-s", "-1"], "argument --hold-s: must not be negative, got -1"),
     (["--force-limit-N", "x"], "argument --force-limit-N: expected a number, got 'x'"),
-    (["--rate-hz", "nan"], "argument --rate-hz: must be positive, got nan"),
+    (["--rate-hz", "nan"], "argument --rate-hz: expected a finite number"),
     (["--frames-at", "0,a"], "argument --frames-at: expected numbers separated by commas"),
 ])
 def test_acquire_names_the_option_a_bad_value_came_in(tmp_path, capsys, args, says):
