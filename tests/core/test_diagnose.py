@@ -505,7 +505,7 @@ def test_the_scan_tries_spheres_partly_out_of_view_and_no_wider_than_the_field_a
     sphere of seed 105 is centred at x = 22, outside it), the grid inside the field
     is the one scanned before, no sphere is wider than MAX_WIDTH of the field
     (the 13.5 mm radius is capped at 6.4), and every sphere lies inside the block."""
-    from app.core.effects.inclusion import MAX_WIDTH, candidate_spheres
+    from app.core.effects.inclusion import MAX_WIDTH, candidate_spheres, capping_width
 
     lo, hi, size, step = np.array([28.7, 45.0, 63.6]), np.array([60.7, 45.0, 92.4]), (90.0, 90.0, 96.0), 3.6
     sph = candidate_spheres(lo, hi, 45.0, size, [5.4, 9.0, 13.5], step, 32.0)
@@ -523,6 +523,13 @@ def test_the_scan_tries_spheres_partly_out_of_view_and_no_wider_than_the_field_a
     # a field the cap does not bind (the test phantoms': 29 mm wide, radii up to 4.5 mm)
     sph = candidate_spheres(np.array([5.5, 20, 4.2]), np.array([34.3, 20, 26.6]), 20.0, (40, 40, 30), [1.8, 3, 4.5],
                             1.2, 28.8)
+    assert sorted({r for _, r in sph}) == [1.8, 3.0, 4.5]
+    # a specimen described as one region: no cap (a 24 mm wide image of one, tracked over
+    # 12.8 mm, capped the radius at 2.56 mm, under a hidden sphere of 4 mm)
+    lo, hi = np.array([13.6, 20.0, 3.0]), np.array([26.4, 20.0, 25.0])
+    assert capping_width(lo, hi, [1.0, 0.0, 0.0], 2) == pytest.approx(12.8)
+    assert capping_width(lo, hi, [1.0, 0.0, 0.0], 1) == math.inf
+    sph = candidate_spheres(lo, hi, 20.0, (40, 40, 30), [1.8, 3, 4.5], 1.2, capping_width(lo, hi, [1, 0, 0], 1))
     assert sorted({r for _, r in sph}) == [1.8, 3.0, 4.5]
 
 
