@@ -42,7 +42,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Callable
 
 import numpy as np
@@ -304,13 +304,9 @@ class Candidate:
         return (self.problem is not None or self.restored) and math.isfinite(self.score)
 
     def state(self) -> dict:
-        """Everything but the model, JSON-ready, for :meth:`from_state` (a session file)."""
-        return {"effect": self.effect, "effects": list(self.effects), "parameters": self.parameters,
-                "cost": self.cost, "misfit": self.misfit, "n_parameters": self.n_parameters,
-                "score": float(self.score), "evidence": self.evidence, "inclusion": self.inclusion,
-                "seconds": self.seconds, "material": self.material, "signature": self.signature,
-                "reference": self.reference, "negligible": self.negligible,
-                "fitted": self.problem is not None or self.restored}
+        """Every field but the model, JSON-ready, for :meth:`from_state` (a session file)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("problem", "restored")}
+        return {**d, "effects": list(self.effects), "score": float(self.score), "fitted": self.fitted}
 
     @classmethod
     def from_state(cls, d: dict) -> "Candidate":
