@@ -45,6 +45,9 @@ CASES = {
     "visco-ramp": (121, ["--effects", "viscoelastic"], "viscoelastic"),
     "slip-123": (123, ["--effects", "probe-slip"], "probe-slip"),
     "slide-unload": (122, ["--effects", "sliding-bottom", "--hold-s", "3", "--unload"], "sliding-bottom"),
+    # a frame every half millimetre (31 frames): memory and time with many frames
+    "slip-31": (131, ["--effects", "probe-slip", "--frames-at", ",".join(f"{14.8 * i / 30:.3f}" for i in range(31))],
+                "probe-slip"),
 }
 
 

@@ -25,7 +25,7 @@ from app.core.forward import Boundary, FEModel, ReducedModel, build_model, regio
 from app.core.images import default_roi, pixel_to_world
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 from app.core.similarity import NMI, SmoothNMI
-from app.core.warp import TPS, FastWarp, WarpGrid
+from app.core.warp import TPS, FastWarp, WarpGrid, shared_warp
 from app.core.solver import single_threaded_blas
 
 PAPER_STARTS_KPA = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
@@ -161,9 +161,9 @@ class Problem:
         grid = WarpGrid(c0, r0, c1, r1)
         self.pairs: list[_FramePair] = []
         ref = np.ones(len(self.region_names))
+        warp = shared_warp(self.tps, img0.shape, grid)  # the same for every pair (and model)
         for t in frames[1:]:
             tgt = exp.image(t)
-            warp = FastWarp(self.tps, img0.shape, grid)
             pair = _FramePair(frames[0], t, exp.frames[frames[0]].displacement_mm, exp.frames[t].displacement_mm,
                               warp, None, None, img0, tgt[r0:r1, c0:c1])
             rows, cols = warp.sample_positions(coarse=self._coarse_field(pair, self.rm.coords(ref)))
@@ -246,8 +246,9 @@ class Problem:
     def _coarse_field(self, pair: _FramePair, a: np.ndarray) -> np.ndarray:
         """Forward displacement (px) on the warp's coarse source grid. The chain
         reduced coordinates -> control points -> TPS on the grid is linear, so it is
-        precomposed into one small matrix per frame pair (rebuilt if the basis grows)."""
-        key = (id(pair), self.rm.k)
+        precomposed into one small matrix, shared by the pairs as their warp is (rebuilt
+        if the basis grows); a pair scales it by its travel."""
+        key = (id(pair.warp), self.rm.k)  # the pairs share their warp, and so this
         cache = self.__dict__.setdefault("_G", {})
         if key not in cache:
             self._pointop.values(np.zeros(self.rm.k))  # make sure B matches the basis

@@ -167,3 +167,30 @@ def test_elements_beside_the_probe_outline_get_a_richer_rule_with_the_same_linea
     assert len(four.edge) == 0
     T4 = four._upper_matrix(four.tangent_upper(np.zeros(fe.space.n_dofs), mu, lam))
     assert abs(T0 - T4).max() <= 1e-12 * abs(A).max()
+
+
+def test_many_frames_ask_for_a_bounded_number_of_travels_and_the_rest_are_interpolated():
+    """spread_marks(): with a frame every half millimetre the hyperelastic solve was
+    asked for every frame's travel (30 at paper size; one kept factor each, and the
+    diagnosis peaked at 10.1 GB during it). At most MAX_LOAD_STEPS travels are
+    asked for now, spread evenly and always reaching the deepest; fewer are kept
+    as they are. The correction at a travel between them is quadratic through the
+    three nearest steps and the rest state: exact for a correction growing as d^2
+    (and for one linear in d), which a linear interpolation is not."""
+    from types import SimpleNamespace
+
+    from app.core.effects.model import MAX_LOAD_STEPS, EffectProblem, spread_marks
+
+    assert spread_marks([2.5, 5.0], MAX_LOAD_STEPS) == [2.5, 5.0]
+    marks = list(np.round(np.linspace(14.8 / 30, 14.8, 30), 3))
+    kept = spread_marks(marks, MAX_LOAD_STEPS)
+    assert len(kept) == MAX_LOAD_STEPS and kept[-1] == 14.8 and set(kept) <= set(marks)
+    assert np.diff(kept).max() < 2 * 14.8 / MAX_LOAD_STEPS and kept == sorted(kept)
+
+    depths = np.array(kept)
+    for law in (lambda d: d**2, lambda d: 3.0 * d, lambda d: 0.2 * d**2 - d):
+        C = np.stack([law(d) * np.array([[1.0, -2.0, 0.5]]) for d in depths])  # (steps, points, xyz)
+        fake = SimpleNamespace(_hyper=SimpleNamespace(depths_mm=depths, corrections={"p": C}))
+        for d in (*marks, 0.2, 15.3):  # every frame, before the first step, beyond the last
+            got = EffectProblem._correction_at(fake, "p", d)
+            np.testing.assert_allclose(got, law(d) * np.array([[1.0, -2.0, 0.5]]), atol=1e-9 * (1 + abs(law(d))))

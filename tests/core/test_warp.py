@@ -110,3 +110,27 @@ def test_fast_warp_on_the_demo_deep_frame_within_a_tenth_of_a_pixel():
     err = np.abs(fast - exact).max(axis=-1)[pair.mask]
     assert np.abs(vals).max() > 10  # a deep frame: displacements of tens of pixels
     assert err.max() < 0.1, err.max()
+
+
+def test_equal_warps_are_one_object_while_in_use():
+    """shared_warp(): callers with the same control points, image shape and ROI get
+    one FastWarp (a model holds one per frame pair, a diagnosis seven or eight
+    models); it warps exactly as a FastWarp of its own, and is freed with its last
+    holder."""
+    import gc
+
+    from app.core.warp import shared_warp
+
+    ctrl = _control()
+    roi = WarpGrid(20, 10, 180, 240)
+    w = shared_warp(TPS(ctrl), (256, 200), roi)
+    assert shared_warp(TPS(ctrl.copy()), (256, 200), WarpGrid(20, 10, 180, 240)) is w
+    assert shared_warp(TPS(ctrl), (256, 200), WarpGrid(20, 10, 180, 239)) is not w
+    assert shared_warp(TPS(ctrl + 0.5), (256, 200), roi) is not w
+    image = gaussian_filter(np.random.default_rng(1).normal(size=(256, 200)), 2.0)
+    vals = _indentation_field(ctrl)
+    np.testing.assert_array_equal(w(image, vals), FastWarp(TPS(ctrl), (256, 200), roi)(image, vals))
+    ref = __import__("weakref").ref(w)
+    del w
+    gc.collect()
+    assert ref() is None

@@ -52,6 +52,28 @@ class _HyperState:
     solution: object = None
 
 
+# the most travels the hyperelastic solve is asked for (besides the substeps of a
+# long step): each keeps an equilibrium and a factorized tangent for the next
+# solve's warm start (about 0.2 GB each at paper size), and each costs a warm solve
+# its iterations. With a frame every half millimetre (31 frames at paper size) the
+# solve was asked for 30 travels, and the diagnosis peaked at 10.1 GB during it.
+MAX_LOAD_STEPS = 8
+
+
+def spread_marks(marks, n: int) -> list[float]:
+    """At most ``n`` of the increasing travels ``marks``, the deepest always: each the
+    one nearest to n evenly spaced travels up to the deepest. Fewer marks are kept
+    as they are."""
+    marks = [float(m) for m in marks]
+    if len(marks) <= n:
+        return marks
+    arr = np.asarray(marks)
+    picked = {len(marks) - 1}
+    for t in np.linspace(arr[-1] / n, arr[-1], n)[:-1]:
+        picked.add(int(np.argmin(np.abs(arr - t))))
+    return [marks[i] for i in sorted(picked)]
+
+
 class EffectProblem(Problem):
     """A :class:`Problem` with effects. Build with :meth:`from_experiment`."""
 
@@ -235,11 +257,15 @@ class EffectProblem(Problem):
     def load_steps_mm(self, max_step_mm: float | None = None) -> np.ndarray:
         """Probe travels of the hyperelastic load steps: every frame's travel and
         the log's deepest, with steps no longer than ``max_step_mm`` (default: a
-        twentieth of the specimen's height)."""
+        twentieth of the specimen's height). With more than MAX_LOAD_STEPS such
+        travels (a frame every half millimetre), MAX_LOAD_STEPS of them spread
+        evenly up to the deepest; the frames between are interpolated
+        (:meth:`_correction_at`)."""
         h = self.exp.specimen.size_mm[2]
         step = max_step_mm or h / 20.0
         marks = sorted({round(float(x), 9) for x in [self.log_d.max()] + [f.displacement_mm for f in self.exp.frames]
                         if x > 1e-9})
+        marks = spread_marks(marks, MAX_LOAD_STEPS)
         out, prev = [], 0.0
         for m in marks:
             n = max(1, int(math.ceil((m - prev) / step - 1e-9)))
@@ -323,11 +349,15 @@ class EffectProblem(Problem):
         k = int(np.searchsorted(dd, d - 1e-9))
         if k < len(dd) and abs(dd[k] - d) < 1e-6:
             return C[k - 1]
-        # between steps: quadratic in d through the neighbouring steps (the correction is O(d^2))
-        k = min(max(k, 1), len(dd) - 1)
-        w = (d - dd[k - 1]) / (dd[k] - dd[k - 1])
-        lo = C[k - 2] if k >= 2 else np.zeros(C.shape[1:])
-        return (1 - w) * lo + w * C[k - 1]
+        # between steps: quadratic in d through three steps around it (with the rest
+        # state, where the correction is zero): exact for a correction O(d^2)
+        cs = np.concatenate([np.zeros((1, *C.shape[1:])), C])
+        if len(dd) < 3:
+            return (d / dd[-1]) ** 2 * C[-1]
+        j = min(max(k - 1, 0), len(dd) - 3)  # nodes j, j+1, j+2
+        x = dd[j:j + 3]
+        w = [np.prod([(d - x[m]) / (x[i] - x[m]) for m in range(3) if m != i]) for i in range(3)]
+        return w[0] * cs[j] + w[1] * cs[j + 1] + w[2] * cs[j + 2]
 
     def _pair_correction(self, name: str, pair) -> np.ndarray:
         return self._correction_at(name, pair.d_target_mm) - self._correction_at(name, pair.d_source_mm)
