@@ -193,6 +193,7 @@ def cmd_identify(args) -> int:
     check_starts(starts, "--starts")
     exp = read_experiment(args.experiment)
     frames = frame_indices(exp, args.frames, "--frames") if args.frames else None
+    _say_thinned(exp, frames, args.quiet)
     bar = TerminalProgress(not args.quiet, len(starts))
     settings = _mesh_settings(args, exp)
     roi = check_roi(exp, args.roi, "--roi") if args.roi else None
@@ -220,6 +221,7 @@ def cmd_identify(args) -> int:
     result.effects = tuple(effects)
     result.experiment = str(args.experiment)
     payload = result.to_json_dict()
+    payload["frames"] = list(problem.frames)  # the source first
     if inclusion is not None:  # its place is a parameter too (as in a diagnosis' candidate)
         payload["parameters"] = {**payload["parameters"], "center_mm": inclusion["center_mm"],
                                  "radius_mm": inclusion["radius_mm"]}
@@ -245,6 +247,15 @@ def cmd_identify(args) -> int:
             for line in result.identifiability.lines():
                 print(f"  {line}")
     return 0 if written else 1
+
+
+def _say_thinned(exp, frames, quiet: bool) -> None:
+    """Say on stderr when the default frames leave some out (later_frames)."""
+    from app.core.identify import frame_indices, thinned_note
+
+    note = thinned_note(exp, frame_indices(exp)) if frames is None else ""
+    if note and not quiet:
+        print(f"elastoid: {note}", file=sys.stderr)
 
 
 def _mesh_settings(args, exp):
@@ -281,6 +292,7 @@ def cmd_diagnose(args) -> int:
               file=sys.stderr)
     _check_json_dest(args.json)
     exp = read_experiment(args.experiment)
+    _say_thinned(exp, None, args.quiet)
     bar = TerminalProgress(not args.quiet, 1)
     t0 = time.perf_counter()
     settings = _mesh_settings(args, exp)
@@ -384,7 +396,8 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--similarity", choices=("smooth", "hard"), default="smooth",
                     help="NMI estimator of the cost: smooth (partial-volume bins, continuous; default) or hard "
                          "(the paper's fixed bins, equal to skimage's)")
-    ip.add_argument("--frames", type=_indices, help="frame indices, the first is the source (default: 0 and every later frame)")
+    ip.add_argument("--frames", type=_indices, help="frame indices, the first is the source (default: 0 and every "
+                    "later frame with more probe travel, at most 31 in all, spread over the recording)")
     ip.add_argument("--roi", type=_roi, help="col0,row0,col1,row1 in pixels, ends exclusive (default: the "
                     "experiment's)")
     ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")

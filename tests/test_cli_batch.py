@@ -33,6 +33,7 @@ def test_simulate_then_identify_json_follows_the_contract(tmp_path, capsys):
     assert c["total"] == pytest.approx(-c["nmi"] + (c["force_rms_N"] / peak) ** 2, abs=1e-9)
     assert c["nmi"] > 1.02  # the warped source agrees with the frames far beyond chance (unrelated: ~1.00)
     assert result["evaluations"] > 10 and result["seconds"] > 0
+    assert result["frames"] == [0, 1, 2]  # the source first, then every deeper frame
     assert all(math.isfinite(v) for v in result["parameters"].values())
 
 
@@ -287,3 +288,20 @@ def test_frames_may_count_from_the_end():
     assert frame_indices(exp, [0, -1]) == (0, 2)
     with pytest.raises(Exception, match="no frame -4"):
         frame_indices(exp, [0, -4])
+
+
+def test_identify_and_diagnose_say_when_the_default_frames_leave_some_out(capsys):
+    """More than MAX_DEFAULT_FRAMES deeper frames (a scanner at video rate): the
+    commands compare a spread of them, and say so on stderr unless --quiet; frames
+    the user gives, or few enough, say nothing."""
+    from types import SimpleNamespace
+
+    from app.cli import _say_thinned
+
+    video = SimpleNamespace(frames=[SimpleNamespace(displacement_mm=0.1 * i) for i in range(80)])
+    _say_thinned(video, None, quiet=False)
+    assert capsys.readouterr().err.startswith("elastoid: comparing 30 of the 79 frames deeper than frame 0, spread")
+    _say_thinned(video, None, quiet=True)
+    _say_thinned(video, (0, 5, 9), quiet=False)
+    _say_thinned(SimpleNamespace(frames=video.frames[:31]), None, quiet=False)
+    assert capsys.readouterr().err == ""

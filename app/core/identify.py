@@ -78,15 +78,53 @@ def force_noise_N(force_N: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
 
 
+# the most frames compared by default, the source included. Cost and memory grow
+# with every frame: at paper size 31 frames (one every half millimetre) took a
+# diagnosis 3.3 minutes and 6.1 GB, and a scanner recording a slow indentation at
+# video rate gives hundreds. Frames that close add little: the tracking between
+# them is already at its noise (bench/paper_effects.py, case slip-31).
+MAX_DEFAULT_FRAMES = 31
+
+
+def later_frames(exp, source: int = 0, keep=(), limit: int = MAX_DEFAULT_FRAMES) -> tuple[int, ...]:
+    """The frames compared with ``source`` by default: every other frame with more
+    probe travel, in the order recorded. More than ``limit - 1`` of them are thinned
+    to that many spread evenly over the recording, keeping the deepest and those of
+    ``keep`` that are among them."""
+    d0 = exp.frames[source].displacement_mm
+    later = [i for i, f in enumerate(exp.frames) if i != source and f.displacement_mm > d0 + 1e-9]
+    if len(later) <= limit - 1:
+        return tuple(later)
+    deepest = max(later, key=lambda i: exp.frames[i].displacement_mm)
+    picked = {later[int(round(k))] for k in np.linspace(0, len(later) - 1, limit - 1)}
+    musts = [deepest, *(i for i in keep if i in later)]
+    for must in musts:  # each takes the place of the nearest frame picked
+        if must not in picked:
+            picked.remove(min((i for i in picked if i not in musts), key=lambda i: abs(i - must)))
+            picked.add(must)
+    return tuple(sorted(picked))
+
+
+def thinned_note(exp, chosen) -> str:
+    """What a progress line says when the default frames ``chosen`` were thinned
+    (:func:`later_frames`); "" when every deeper frame is compared."""
+    d0 = exp.frames[chosen[0]].displacement_mm
+    n = sum(1 for i, f in enumerate(exp.frames) if i != chosen[0] and f.displacement_mm > d0 + 1e-9)
+    if n <= len(chosen) - 1:
+        return ""
+    return (f"comparing {len(chosen) - 1} of the {n} frames deeper than frame {chosen[0]}, spread over the "
+            "recording (frames that close add little, and each costs time and memory)")
+
+
 def frame_indices(exp, frames=None, what: str = "frames") -> tuple[int, ...]:
     """The frames a cost compares, the first the source (pre-deformation) frame:
-    by default frame 0 and every later frame with more probe travel. Given
-    indices may count from the end (-1: the last frame); each must exist and
-    appear once. ElastoidError (naming ``what``) otherwise."""
+    by default frame 0 and every later frame with more probe travel
+    (:func:`later_frames`: at most MAX_DEFAULT_FRAMES in all). Given indices may
+    count from the end (-1: the last frame); each must exist and appear once.
+    ElastoidError (naming ``what``) otherwise."""
     n = len(exp.frames)
     if frames is None:
-        d0 = exp.frames[0].displacement_mm
-        out = (0,) + tuple(i for i, f in enumerate(exp.frames) if i > 0 and f.displacement_mm > d0 + 1e-9)
+        out = (0,) + later_frames(exp)
     else:
         out = []
         for i in frames:
@@ -193,7 +231,9 @@ class Problem:
         default frame 0 against every later frame with larger probe travel.
         """
         say = progress or (lambda s: None)
-        frames = frame_indices(exp, frames)
+        given, frames = frames, frame_indices(exp, frames)
+        if given is None and thinned_note(exp, frames):
+            say(thinned_note(exp, frames))
         nu = check_poisson(nu)
         check_roi(exp, roi_px)
         if mesh is None:

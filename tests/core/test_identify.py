@@ -142,3 +142,33 @@ def test_the_papers_hard_binned_cost_equals_skimage(case):
     assert hard.evaluate(p)["nmi"] == pytest.approx(np.mean(expected), abs=1e-9)
     # the smooth estimator of the default cost is close to it
     assert joint.evaluate(p)["nmi"] == pytest.approx(np.mean(expected), rel=0.05)
+
+
+def test_frames_at_video_rate_are_thinned_to_a_spread_of_them_by_default():
+    """later_frames(): a scanner recording at video rate gives hundreds of frames,
+    and every frame costs time and memory (31 at paper size: a diagnosis 3.3 min
+    and 6.1 GB). By default at most MAX_DEFAULT_FRAMES are compared, spread evenly
+    over the recording, the deepest always among them; fewer are all compared, and
+    frames given by the user are never thinned."""
+    from types import SimpleNamespace
+
+    from app.core.identify import MAX_DEFAULT_FRAMES, frame_indices, later_frames, thinned_note
+
+    def exp(travels):
+        return SimpleNamespace(frames=[SimpleNamespace(displacement_mm=float(d)) for d in travels])
+
+    few = exp([0.0, 2.5, 5.0, 5.0, 1.0])
+    assert frame_indices(few) == (0, 1, 2, 3, 4) and thinned_note(few, frame_indices(few)) == ""
+    # 10 frames a second: a 14.8 mm ramp at 1 mm/s, a 6 s hold, the unloading
+    ramp = np.round(np.arange(0, 14.85, 0.1), 3)
+    video = exp([*ramp, *[14.8] * 60, *ramp[::-1][1:]])
+    got = frame_indices(video)
+    deepest = int(np.argmax([f.displacement_mm for f in video.frames]))
+    assert len(got) == MAX_DEFAULT_FRAMES and got[0] == 0 and deepest in got
+    assert list(got) == sorted(set(got))
+    gaps = np.diff(got[1:])
+    assert gaps.max() <= 2 * gaps.mean(), gaps  # spread over the whole recording
+    assert got[-1] >= len(video.frames) - 2  # the unloading is there too
+    assert thinned_note(video, got).startswith(f"comparing {MAX_DEFAULT_FRAMES - 1} of the {len(video.frames) - 2} ")
+    assert 77 in later_frames(video, keep=(77,)) and 0 not in later_frames(video, source=5)
+    assert len(frame_indices(video, list(range(60)))) == 60  # the user's choice stands

@@ -84,6 +84,19 @@ def test_session_json_and_bad_session_files(noise_experiment, tmp_path):
     with pytest.raises(SessionError, match="format"):
         SessionModel().load_session(bad)
 
+    # frames at video rate (90 here, a 5 s ramp and a hold): thinned as the core's
+    # default is (later_frames), with the chosen target and the deepest frame kept
+    from app.core.experiment import Frame
+    from app.core.identify import MAX_DEFAULT_FRAMES
+
+    s.experiment = replace(s.experiment, frames=tuple(Frame(f"images/frame_{i:03d}.png", 0.1 * i, min(0.1 * i, 5.0))
+                                                      for i in range(90)))
+    s.set_identification(replace(s.identification, all_frames=True))
+    s.set_frames(0, 37)
+    got = s.analysis_frames()
+    assert got[0] == 0 and 37 in got and 50 in got and list(got[1:]) == sorted(set(got[1:]))
+    assert len(got) == MAX_DEFAULT_FRAMES, got
+
 
 def test_models_are_qt_free():
     code = ("import sys; import app.gui.models.session, app.gui.models.rig, app.gui.models.identification, "

@@ -37,7 +37,7 @@ from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import check_poisson, interpolation_matrix
 from app.core.forward import ReducedModel, build_model, local_training_set, region_terms, training_set
 from app.core.identify import (BOUNDS_KPA, EvalReport, Problem, Result, check_roi, check_starts, frame_indices,
-                               nelder_mead)
+                               nelder_mead, thinned_note)
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 from app.core.solver import single_threaded_blas
 
@@ -113,7 +113,9 @@ class EffectProblem(Problem):
         if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
             raise ElastoidError("the inclusion effect needs the inclusion's place: locate it first "
                                 "(app.core.diagnose.locate_inclusion, or a diagnosis)")
-        frames = frame_indices(exp, frames)
+        given, frames = frames, frame_indices(exp, frames)
+        if given is None and thinned_note(exp, frames):
+            say(thinned_note(exp, frames))
         nu = check_poisson(nu)
         check_roi(exp, roi_px)
         if mesh is None and base is not None and base.mesh.region_names == exp.specimen.region_names:

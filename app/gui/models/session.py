@@ -20,6 +20,7 @@ import numpy as np
 from app.core.errors import ElastoidError
 from app.core.experiment import Experiment, Specimen, read_experiment
 from app.core.geometry import Region
+from app.core.identify import later_frames
 from app.core.mesh import MeshSettings, TetMesh
 
 from .signal import Signal
@@ -283,8 +284,7 @@ class SessionModel:
         exp, src, tgt = self.experiment, self.source_frame, self.target_frame
         if not self.identification.all_frames:
             return (src, tgt)
-        d0 = exp.frames[src].displacement_mm
-        later = tuple(i for i, f in enumerate(exp.frames) if i != src and f.displacement_mm > d0 + 1e-9)
+        later = later_frames(exp, src, keep=(tgt,))  # at most MAX_DEFAULT_FRAMES in all
         return (src,) + (later if tgt in later else later + (tgt,))
 
     def reference_kPa(self) -> dict[str, float]:
