@@ -397,7 +397,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="NMI estimator of the cost: smooth (partial-volume bins, continuous; default) or hard "
                          "(the paper's fixed bins, equal to skimage's)")
     ip.add_argument("--frames", type=_indices, help="frame indices, the first is the source (default: 0 and every "
-                    "later frame with more probe travel, at most 31 in all, spread over the recording)")
+                    "later frame with more probe travel, at most 31 in all, spread along the probe's travel)")
     ip.add_argument("--roi", type=_roi, help="col0,row0,col1,row1 in pixels, ends exclusive (default: the "
                     "experiment's)")
     ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")

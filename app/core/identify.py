@@ -89,18 +89,24 @@ MAX_DEFAULT_FRAMES = 31
 def later_frames(exp, source: int = 0, keep=(), limit: int = MAX_DEFAULT_FRAMES) -> tuple[int, ...]:
     """The frames compared with ``source`` by default: every other frame with more
     probe travel, in the order recorded. More than ``limit - 1`` of them are thinned
-    to that many spread evenly over the recording, keeping the deepest and those of
-    ``keep`` that are among them."""
+    to that many spread evenly along the probe's path (its travel summed over the
+    recording, loading and unloading alike; a hold adds nothing, so its frames,
+    which see the same field, do not crowd out the others), keeping the deepest
+    and those of ``keep`` that are among them."""
     d0 = exp.frames[source].displacement_mm
     later = [i for i, f in enumerate(exp.frames) if i != source and f.displacement_mm > d0 + 1e-9]
     if len(later) <= limit - 1:
         return tuple(later)
-    deepest = max(later, key=lambda i: exp.frames[i].displacement_mm)
-    picked = {later[int(round(k))] for k in np.linspace(0, len(later) - 1, limit - 1)}
-    musts = [deepest, *(i for i in keep if i in later)]
+    d = np.array([exp.frames[i].displacement_mm for i in later])
+    path = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(d)))])
+    if path[-1] <= 1e-9:  # every frame at one travel: spread over the recording
+        path = np.arange(len(later), dtype=float)
+    picked = {later[int(np.argmin(np.abs(path - t)))] for t in np.linspace(0.0, path[-1], limit - 1)}
+    musts = [later[int(np.argmax(d))], *(i for i in keep if i in later)]
     for must in musts:  # each takes the place of the nearest frame picked
         if must not in picked:
-            picked.remove(min((i for i in picked if i not in musts), key=lambda i: abs(i - must)))
+            if len(picked) >= limit - 1:
+                picked.remove(min((i for i in picked if i not in musts), key=lambda i: abs(i - must)))
             picked.add(must)
     return tuple(sorted(picked))
 
@@ -112,8 +118,8 @@ def thinned_note(exp, chosen) -> str:
     n = sum(1 for i, f in enumerate(exp.frames) if i != chosen[0] and f.displacement_mm > d0 + 1e-9)
     if n <= len(chosen) - 1:
         return ""
-    return (f"comparing {len(chosen) - 1} of the {n} frames deeper than frame {chosen[0]}, spread over the "
-            "recording (frames that close add little, and each costs time and memory)")
+    return (f"comparing {len(chosen) - 1} of the {n} frames deeper than frame {chosen[0]}, spread along the "
+            "probe's travel (frames that close add little, and each costs time and memory)")
 
 
 def frame_indices(exp, frames=None, what: str = "frames") -> tuple[int, ...]:

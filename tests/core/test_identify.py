@@ -148,8 +148,9 @@ def test_frames_at_video_rate_are_thinned_to_a_spread_of_them_by_default():
     """later_frames(): a scanner recording at video rate gives hundreds of frames,
     and every frame costs time and memory (31 at paper size: a diagnosis 3.3 min
     and 6.1 GB). By default at most MAX_DEFAULT_FRAMES are compared, spread evenly
-    over the recording, the deepest always among them; fewer are all compared, and
-    frames given by the user are never thinned."""
+    along the probe's path (loading and unloading; a hold's frames see one field
+    and would crowd out the rest if spread in time), the deepest always among
+    them; fewer are all compared, and frames given by the user are never thinned."""
     from types import SimpleNamespace
 
     from app.core.identify import MAX_DEFAULT_FRAMES, frame_indices, later_frames, thinned_note
@@ -159,16 +160,19 @@ def test_frames_at_video_rate_are_thinned_to_a_spread_of_them_by_default():
 
     few = exp([0.0, 2.5, 5.0, 5.0, 1.0])
     assert frame_indices(few) == (0, 1, 2, 3, 4) and thinned_note(few, frame_indices(few)) == ""
-    # 10 frames a second: a 14.8 mm ramp at 1 mm/s, a 6 s hold, the unloading
+    # 10 frames a second: a 14.8 mm ramp at 1 mm/s, a 60 s hold, the unloading
     ramp = np.round(np.arange(0, 14.85, 0.1), 3)
-    video = exp([*ramp, *[14.8] * 60, *ramp[::-1][1:]])
+    video = exp([*ramp, *[14.8] * 600, *ramp[::-1][1:]])
+    d = np.array([f.displacement_mm for f in video.frames])
     got = frame_indices(video)
-    deepest = int(np.argmax([f.displacement_mm for f in video.frames]))
-    assert len(got) == MAX_DEFAULT_FRAMES and got[0] == 0 and deepest in got
+    assert len(got) == MAX_DEFAULT_FRAMES and got[0] == 0 and int(np.argmax(d)) in got
     assert list(got) == sorted(set(got))
-    gaps = np.diff(got[1:])
-    assert gaps.max() <= 2 * gaps.mean(), gaps  # spread over the whole recording
-    assert got[-1] >= len(video.frames) - 2  # the unloading is there too
+    loading, hold, unloading = (sum(lo <= i < hi for i in got[1:]) for lo, hi in ((1, 148), (148, 749), (749, 900)))
+    assert hold <= 2 and abs(loading - unloading) <= 2, (loading, hold, unloading)
+    assert np.diff(d[list(got[1:loading + 1])]).max() < 2 * 14.8 / 15  # the loading's travels evenly covered
     assert thinned_note(video, got).startswith(f"comparing {MAX_DEFAULT_FRAMES - 1} of the {len(video.frames) - 2} ")
-    assert 77 in later_frames(video, keep=(77,)) and 0 not in later_frames(video, source=5)
+    assert 300 in later_frames(video, keep=(300,)) and 0 not in later_frames(video, source=5)
     assert len(frame_indices(video, list(range(60)))) == 60  # the user's choice stands
+    # every frame at one travel (a hold alone): spread over the recording
+    held = frame_indices(exp([0.0, *[5.0] * 100]))
+    assert len(held) == MAX_DEFAULT_FRAMES and held[1] == 1 and held[-1] == 100

@@ -125,9 +125,9 @@ class IdentificationPanel(Panel):
         from app.core.identify import MAX_DEFAULT_FRAMES
 
         self.frames_box.setToolTip(f"Every frame with more probe travel than the source; of more than "
-                                   f"{MAX_DEFAULT_FRAMES - 1}, {MAX_DEFAULT_FRAMES - 1} spread over the recording "
-                                   "(the target and the deepest among them): frames that close add little, and "
-                                   "each costs time and memory")
+                                   f"{MAX_DEFAULT_FRAMES - 1}, {MAX_DEFAULT_FRAMES - 1} spread along the probe's "
+                                   "travel, a hold's frames counting as one (the target and the deepest among "
+                                   "them): frames that close add little, and each costs time and memory")
         self.frames_box.currentIndexChanged.connect(self._controls_edited)
         f.addRow("Frames", self.frames_box)
         self.starts_edit = QLineEdit()
