@@ -37,7 +37,9 @@ def main() -> int:
     rows, ref = [], None
     for n in (1000, cap):
         model.MAX_LOAD_STEPS = n
-        p._hyper_model = None  # a cold solver
+        if p._hyper_model is not None:  # a cold solver (the last one's factors freed)
+            p._hyper_model.free()
+            p._hyper_model = None
         t = time.perf_counter()
         p.refresh_hyperelastic(params)
         cold = time.perf_counter() - t

@@ -86,6 +86,12 @@ def force_noise_N(force_N: np.ndarray) -> float:
 MAX_DEFAULT_FRAMES = 31
 
 
+def _deeper(exp, source: int) -> list[int]:
+    """Every frame with more probe travel than frame ``source``, in the order recorded."""
+    d0 = exp.frames[source].displacement_mm
+    return [i for i, f in enumerate(exp.frames) if i != source and f.displacement_mm > d0 + 1e-9]
+
+
 def later_frames(exp, source: int = 0, keep=(), limit: int = MAX_DEFAULT_FRAMES) -> tuple[int, ...]:
     """The frames compared with ``source`` by default: every other frame with more
     probe travel, in the order recorded. More than ``limit - 1`` of them are thinned
@@ -93,8 +99,7 @@ def later_frames(exp, source: int = 0, keep=(), limit: int = MAX_DEFAULT_FRAMES)
     recording, loading and unloading alike; a hold adds nothing, so its frames,
     which see the same field, do not crowd out the others), keeping the deepest
     and those of ``keep`` that are among them."""
-    d0 = exp.frames[source].displacement_mm
-    later = [i for i, f in enumerate(exp.frames) if i != source and f.displacement_mm > d0 + 1e-9]
+    later = _deeper(exp, source)
     if len(later) <= limit - 1:
         return tuple(later)
     d = np.array([exp.frames[i].displacement_mm for i in later])
@@ -114,12 +119,21 @@ def later_frames(exp, source: int = 0, keep=(), limit: int = MAX_DEFAULT_FRAMES)
 def thinned_note(exp, chosen) -> str:
     """What a progress line says when the default frames ``chosen`` were thinned
     (:func:`later_frames`); "" when every deeper frame is compared."""
-    d0 = exp.frames[chosen[0]].displacement_mm
-    n = sum(1 for i, f in enumerate(exp.frames) if i != chosen[0] and f.displacement_mm > d0 + 1e-9)
+    n = len(_deeper(exp, chosen[0]))
     if n <= len(chosen) - 1:
         return ""
     return (f"comparing {len(chosen) - 1} of the {n} frames deeper than frame {chosen[0]}, spread along the "
             "probe's travel (frames that close add little, and each costs time and memory)")
+
+
+def chosen_frames(exp, frames, say: Callable[[str], None]) -> tuple[int, ...]:
+    """:func:`frame_indices` for a model being built, saying through ``say`` when the
+    default frames leave some out (:func:`thinned_note`)."""
+    out = frame_indices(exp, frames)
+    note = thinned_note(exp, out) if frames is None else ""
+    if note:
+        say(note)
+    return out
 
 
 def frame_indices(exp, frames=None, what: str = "frames") -> tuple[int, ...]:
@@ -237,9 +251,7 @@ class Problem:
         default frame 0 against every later frame with larger probe travel.
         """
         say = progress or (lambda s: None)
-        given, frames = frames, frame_indices(exp, frames)
-        if given is None and thinned_note(exp, frames):
-            say(thinned_note(exp, frames))
+        frames = chosen_frames(exp, frames, say)
         nu = check_poisson(nu)
         check_roi(exp, roi_px)
         if mesh is None:

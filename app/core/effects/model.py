@@ -36,8 +36,8 @@ from app.core.effects.viscoelastic import prony_force
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import check_poisson, interpolation_matrix
 from app.core.forward import ReducedModel, build_model, local_training_set, region_terms, training_set
-from app.core.identify import (BOUNDS_KPA, EvalReport, Problem, Result, check_roi, check_starts, frame_indices,
-                               nelder_mead, thinned_note)
+from app.core.identify import (BOUNDS_KPA, EvalReport, Problem, Result, check_roi, check_starts, chosen_frames,
+                               nelder_mead)
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
 from app.core.solver import single_threaded_blas
 
@@ -113,9 +113,7 @@ class EffectProblem(Problem):
         if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
             raise ElastoidError("the inclusion effect needs the inclusion's place: locate it first "
                                 "(app.core.diagnose.locate_inclusion, or a diagnosis)")
-        given, frames = frames, frame_indices(exp, frames)
-        if given is None and thinned_note(exp, frames):
-            say(thinned_note(exp, frames))
+        frames = chosen_frames(exp, frames, say)
         nu = check_poisson(nu)
         check_roi(exp, roi_px)
         if mesh is None and base is not None and base.mesh.region_names == exp.specimen.region_names:
@@ -353,13 +351,12 @@ class EffectProblem(Problem):
             return C[k - 1]
         # between steps: quadratic in d through three steps around it (with the rest
         # state, where the correction is zero): exact for a correction O(d^2)
-        cs = np.concatenate([np.zeros((1, *C.shape[1:])), C])
         if len(dd) < 3:
             return (d / dd[-1]) ** 2 * C[-1]
-        j = min(max(k - 1, 0), len(dd) - 3)  # nodes j, j+1, j+2
+        j = min(max(k - 1, 0), len(dd) - 3)  # nodes j, j+1, j+2 of dd (node 0: the rest state)
         x = dd[j:j + 3]
         w = [np.prod([(d - x[m]) / (x[i] - x[m]) for m in range(3) if m != i]) for i in range(3)]
-        return w[0] * cs[j] + w[1] * cs[j + 1] + w[2] * cs[j + 2]
+        return sum(w[i] * C[j + i - 1] for i in range(3) if j + i > 0)
 
     def _pair_correction(self, name: str, pair) -> np.ndarray:
         return self._correction_at(name, pair.d_target_mm) - self._correction_at(name, pair.d_source_mm)
