@@ -1,6 +1,8 @@
 """The neo-Hookean solver against a closed form, a finite-difference tangent and
 the linear model at small strain."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -98,19 +100,25 @@ def test_a_warm_solve_reuses_the_kept_equilibria_and_agrees_with_a_cold_one():
 def test_a_load_path_the_solver_cannot_follow_stops_with_a_clear_message():
     """Pressed to 90% of its height under a bonded probe, the elements beside the
     probe's edges invert: the solve gives up with the travel it reached instead
-    of bisecting forever. (It reaches 5.6 mm, 70%: before its iteration kept
-    indefinite tangents out, it stalled at 4.x mm, and on the demo phantom at
-    12.5 of 14.8 mm. Pressed to 80%, 6.4 mm, it gave up at 5.76 mm while its
-    tangents were LDL^T factors; with Cholesky factors its walk took other steps
-    and reached 6.4 mm, a stable equilibrium: det F >= 0.24, tangent positive
-    definite.)"""
+    of bisecting forever. (Before its iteration kept indefinite tangents out, it
+    stalled at 4.x mm, and on the demo phantom at 12.5 of 14.8 mm. Pressed to
+    80%, 6.4 mm, it gave up at 5.76 mm while its tangents were LDL^T factors;
+    with Cholesky factors its walk took other steps and reached 6.4 mm, a stable
+    equilibrium: det F >= 0.24, tangent positive definite.)
+    How far it gets depends on the steps the walk happens to take, and those on
+    the last bits of the factorizations: 5.6 mm on the Intel machines this was
+    written on, 6.88 mm on an AMD EPYC (MKL takes other code paths there). So
+    the test asks for a clear stop at 5.5 mm or beyond (the next test reaches
+    5.6 mm, 70%) and short of the 7.2 mm asked, not for one figure."""
     from app.core.errors import ElastoidError
 
     mesh = cube_mesh(4, size=(10.0, 10.0, 8.0), probe_rect=(2.5, 7.5, 2.5, 7.5))
     hm = HyperelasticModel(build_model(mesh), max_iterations=20)
-    with pytest.raises(ElastoidError, match=r"cannot follow the load path beyond 5\.\d+ mm"):
+    with pytest.raises(ElastoidError, match=r"cannot follow the load path beyond \d+\.\d+ mm of probe travel") as err:
         hm.solve([10.0], 0.45, [7.2])
     hm.free()
+    reached = float(re.search(r"beyond (\d+\.\d+) mm", str(err.value)).group(1))
+    assert 5.5 <= reached < 7.2
 
 
 def test_the_equilibrium_does_not_depend_on_the_requested_travels_on_the_way():

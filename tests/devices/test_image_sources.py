@@ -22,12 +22,14 @@ def _png(path, value, age_s=5.0):
 
 
 def test_folder_watcher_returns_the_newest_complete_image(tmp_path):
-    _png(tmp_path / "a.png", 10, age_s=9)
-    _png(tmp_path / "b.png", 20, age_s=5)
+    # the settling time is long so that d.png stays unsettled however slow the machine
+    # (with 0.5 s, two busy pytest workers once let it settle before the second call)
+    _png(tmp_path / "a.png", 10, age_s=90)
+    _png(tmp_path / "b.png", 20, age_s=60)
     (tmp_path / "c.png").write_bytes(b"\x89PNG\r\n\x1a\n half written")  # newer, but broken
-    os.utime(tmp_path / "c.png", (time.time() - 1, time.time() - 1))
+    os.utime(tmp_path / "c.png", (time.time() - 40, time.time() - 40))
     _png(tmp_path / "d.png", 30, age_s=0)  # newest, but may still be being written
-    w = FolderWatcher(tmp_path, settle_s=0.5)
+    w = FolderWatcher(tmp_path, settle_s=30.0)
     f = w.frame()
     assert f.pixels.shape == (8, 12) and f.pixels[0, 0] == 20 and f.metadata["path"].endswith("b.png")
     with pytest.raises(DeviceTimeout, match="no complete new image"):
