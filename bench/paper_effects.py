@@ -48,7 +48,41 @@ CASES = {
     # a frame every half millimetre (31 frames): memory and time with many frames
     "slip-31": (131, ["--effects", "probe-slip", "--frames-at", ",".join(f"{14.8 * i / 30:.3f}" for i in range(31))],
                 "probe-slip"),
+    # a scanner recording at 5 frames a second: the loading at 1 mm/s (75 frames, 0.2 mm apart), then a 30 s
+    # hold (150 more frames, see video_hold): 225 frames, most of them at one travel
+    "visco-video": (141, ["--effects", "viscoelastic", "--hold-s", "30", "--g1", "0.3", "--tau1-s", "2",
+                          "--frames-at", ",".join(f"{14.8 * i / 74:.3f}" for i in range(75))], "viscoelastic"),
 }
+HOLD_FPS = {"visco-video": 5.0}  # cases whose hold is recorded at this rate
+
+
+def video_hold(folder: Path, fps: float, seed: int) -> None:
+    """Add the frames a scanner records during the hold, at ``fps``: the simulator
+    takes frames during the loading only. Under a held probe the speckle stays
+    put (the relaxation changes the force, not the displacement, of this
+    one-material relaxation), so each hold frame is the deepest frame with fresh
+    electronic noise (2 grey levels). The force of every frame comes from the log."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from app.core.experiment import TOML, experiment_to_toml, read_experiment, write_toml_atomic
+    from app.core.images import save_png
+
+    exp = read_experiment(folder)
+    last = exp.frames[-1]
+    image = exp.image(len(exp.frames) - 1)
+    log = exp.force_log
+    rng = np.random.default_rng(seed)
+    frames = list(exp.frames)
+    t = last.time_s + 1.0 / fps
+    while t <= log.time_s[-1] + 1e-9 and np.interp(t, log.time_s, log.displacement_mm) >= last.displacement_mm - 1e-6:
+        name = f"images/hold_{len(frames):04d}.png"
+        noisy = np.clip(np.round(image + rng.normal(0.0, 2.0, image.shape)), 0, 255).astype(np.uint8)
+        save_png(folder / name, noisy)
+        frames.append(replace(last, image=name, time_s=round(t, 4), force_N=None))
+        t += 1.0 / fps
+    write_toml_atomic(folder / TOML, experiment_to_toml(exp.with_frames(frames)))
 
 
 def _elastoid(*args: str) -> float:
@@ -76,6 +110,8 @@ def run(out: Path, name: str) -> list[str]:
     folder = out / name
     if not (folder / "experiment.toml").is_file():
         _elastoid("simulate", str(folder), "--overwrite", "--seed", str(seed), *options)
+        if name in HOLD_FPS:
+            video_hold(folder, HOLD_FPS[name], seed)
     t = time.perf_counter()
     peak_gb = _elastoid("diagnose", str(folder), "--json", str(out / f"{name}.json"), "--quiet")
     seconds = time.perf_counter() - t

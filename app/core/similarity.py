@@ -107,7 +107,8 @@ class SmoothNMI:
         self.bins = bins
         f = bin_indices(fixed, bins)
         self.n = f.size
-        self._rows = f * bins
+        # int32 (bins * bins is small): an estimator is kept per frame pair and per jackknife group
+        self._rows = (f * bins).astype(np.int32)
         lo, hi = (float(v) for v in moving_range)
         if not hi > lo:
             lo, hi = lo - 0.5, hi + 0.5
