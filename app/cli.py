@@ -205,7 +205,9 @@ def cmd_identify(args) -> int:
         options = dict(roi_px=roi, frames=frames, cost=args.cost, nu=args.nu, similarity=args.similarity)
         try:
             if "inclusion" in effects:  # located from the misfit of the model without it, as a diagnosis does
+                t_locate = time.perf_counter()
                 inclusion = locate_inclusion(exp, effects, mesh_settings=settings, progress=bar.message, **options)
+                locate_seconds = time.perf_counter() - t_locate
             problem = current_model(exp, effects, mesh_settings=settings, inclusion=inclusion, progress=bar.message,
                                     **options)
             result = identify_with_effects(problem, starts, progress=bar)
@@ -225,7 +227,8 @@ def cmd_identify(args) -> int:
     if inclusion is not None:  # its place is a parameter too (as in a diagnosis' candidate)
         payload["parameters"] = {**payload["parameters"], "center_mm": inclusion["center_mm"],
                                  "radius_mm": inclusion["radius_mm"]}
-        payload["inclusion"] = inclusion
+        # the fit's ``seconds`` leave out the locating (a fit, the tracking, the scan and the mesh)
+        payload["inclusion"] = {**inclusion, "locate_seconds": round(locate_seconds, 2)}
     ref = exp.reference_moduli_kPa(args.nu)
     written = _write_json(args.json, payload) if args.json else True
     if args.json != "-":
@@ -233,8 +236,8 @@ def cmd_identify(args) -> int:
         if inclusion is not None:
             from app.core.effects.inclusion import place_text
 
-            print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit): centre "
-                  f"{place_text(inclusion)}")
+            print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
+                  f"{locate_seconds:.1f} s before the fit): centre {place_text(inclusion)}")
         for name, val in result.parameters.items():
             region = name[2:-4] if name.startswith("E_") else ""
             extra = f"   (reference {ref[region]:.1f} kPa)" if region in ref else ""
