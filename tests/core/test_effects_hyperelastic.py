@@ -108,8 +108,9 @@ def test_a_load_path_the_solver_cannot_follow_stops_with_a_clear_message():
     How far it gets depends on the steps the walk happens to take, and those on
     the last bits of the factorizations: 5.6 mm on the Intel machines this was
     written on, 6.88 mm on an AMD EPYC (MKL takes other code paths there). So
-    the test asks for a clear stop at 5.5 mm or beyond (the next test reaches
-    5.6 mm, 70%) and short of the 7.2 mm asked, not for one figure."""
+    the test asks for a clear stop beyond 5 mm (the stall of the defect above
+    was at 4.x mm; the next test reaches 5.6 mm, 70%) and short of the 7.2 mm
+    asked, not for one figure."""
     from app.core.errors import ElastoidError
 
     mesh = cube_mesh(4, size=(10.0, 10.0, 8.0), probe_rect=(2.5, 7.5, 2.5, 7.5))
@@ -118,7 +119,7 @@ def test_a_load_path_the_solver_cannot_follow_stops_with_a_clear_message():
         hm.solve([10.0], 0.45, [7.2])
     hm.free()
     reached = float(re.search(r"beyond (\d+\.\d+) mm", str(err.value)).group(1))
-    assert 5.5 <= reached < 7.2
+    assert 5.0 <= reached < 7.2
 
 
 def test_the_equilibrium_does_not_depend_on_the_requested_travels_on_the_way():
