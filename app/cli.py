@@ -207,7 +207,7 @@ def cmd_identify(args) -> int:
             if "inclusion" in effects:  # located from the misfit of the model without it, as a diagnosis does
                 t_locate = time.perf_counter()
                 inclusion = locate_inclusion(exp, effects, mesh_settings=settings, progress=bar.message, **options)
-                locate_seconds = time.perf_counter() - t_locate
+                locate_seconds = round(time.perf_counter() - t_locate, 2)  # one figure for the JSON and the summary
             problem = current_model(exp, effects, mesh_settings=settings, inclusion=inclusion, progress=bar.message,
                                     **options)
             result = identify_with_effects(problem, starts, progress=bar)
@@ -228,7 +228,7 @@ def cmd_identify(args) -> int:
         payload["parameters"] = {**payload["parameters"], "center_mm": inclusion["center_mm"],
                                  "radius_mm": inclusion["radius_mm"]}
         # the fit's ``seconds`` leave out the locating (a fit, the tracking, the scan and the mesh)
-        payload["inclusion"] = {**inclusion, "locate_seconds": round(locate_seconds, 2)}
+        payload["inclusion"] = {**inclusion, "locate_seconds": locate_seconds}
     ref = exp.reference_moduli_kPa(args.nu)
     written = _write_json(args.json, payload) if args.json else True
     if args.json != "-":
