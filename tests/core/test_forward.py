@@ -51,18 +51,24 @@ def test_a_model_trained_near_an_optimum_is_smaller_and_still_exact_far_from_it(
 def test_a_released_model_evaluates_the_same_and_refactorizes_to_enrich(model):
     """A diagnosis frees each candidate's factorization once it is scored: the
     model still evaluates exactly as before, and an evaluation beyond its basis
-    factorizes again to enrich it."""
+    factorizes again to enrich it. The terms' matrices, which only an enrichment
+    uses, are freed too and rebuilt to the same values."""
     rm = ReducedModel(model, region_terms(2, 0.49))
     rm.train(local_training_set([18.0, 63.0]))
     a0, k0 = rm.coords([18.0, 63.0]), rm.k
+    A0 = [A.copy() for A in rm.A]
     rm.release()
     rm.release()  # twice is harmless
+    assert rm._A is None
     assert np.array_equal(rm.coords([18.0, 63.0]), a0) and rm.n_full_solves == 1
     u_full, F_full = model.solve([1.0, 200.0])
     a = rm.coords([1.0, 200.0])
     assert np.linalg.norm(rm.full_field(a) - u_full) / np.linalg.norm(u_full) < 1e-6
     assert rm.force_N_per_mm([1.0, 200.0], a) == pytest.approx(F_full, rel=1e-7)
     assert rm.k > k0 and rm.n_full_solves == 2
+    for A, B in zip(rm.A, A0):
+        assert np.array_equal(A.indptr, B.indptr) and np.array_equal(A.indices, B.indices)
+        assert np.array_equal(A.data, B.data)
 
 
 def test_displacement_control_depends_only_on_moduli_ratios(model):
