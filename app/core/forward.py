@@ -155,7 +155,6 @@ class ReducedModel:
         n, Q = len(model.free), len(terms)
         # vectors are stored as rows (contiguous), so the projections are fast BLAS calls
         self._Vt = np.zeros((max_basis, n))
-        self._AVt = np.zeros((Q, max_basis, n))
         self._Qwt = np.zeros((Q * (max_basis + 1), n))
         self._Rw = np.zeros((Q * (max_basis + 1), Q * (max_basis + 1)))
         self._nw = 0
@@ -234,12 +233,11 @@ class ReducedModel:
         v = v / nv
         k = self.k
         self._Vt[k] = v
-        for q, A in enumerate(self.A):
-            self._AVt[q, k] = A @ v
-        self._push_residual_columns(self._AVt[:, k])
-        # the new row and column of each reduced matrix: O(n k), not O(n k^2)
-        self._Ar[:, : k + 1, k] = self._AVt[:, k] @ self._Vt[: k + 1].T
-        self._Ar[:, k, :k] = self._AVt[:, :k] @ v
+        Av = np.array([A @ v for A in self.A])  # (Q, n), not kept: the residual basis holds what is needed
+        self._push_residual_columns(Av)
+        # the new column of each reduced matrix, O(n k), and its row by symmetry
+        self._Ar[:, : k + 1, k] = Av @ self._Vt[: k + 1].T
+        self._Ar[:, k, :k] = self._Ar[:, :k, k]
         self._br[:, k] = self.b @ v
         self._hr[:, k] = self.h @ v
         self.k += 1
@@ -273,8 +271,8 @@ class ReducedModel:
 
     def _enrich(self, theta) -> bool:
         a = self.coords(theta, check=False)
-        k = self.k
-        r = sum(t * (b - a @ AVt[:k]) for t, b, AVt in zip(theta, self.b, self._AVt))
+        u = a @ self._Vt[: self.k]
+        r = sum(t * (b - A @ u) for t, b, A in zip(theta, self.b, self.A))
         self.n_back_solves += 1
         return self._add(self._prec.solve(r))
 
