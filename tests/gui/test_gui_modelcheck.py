@@ -365,6 +365,8 @@ def test_history_text_and_rows():
     rows = history_rows(h)
     assert [r["label"] for r in rows] == ["baseline", "+ viscoelastic"] and rows[1]["current"]
     assert parameters_text(h.versions[1].parameters) == "B 12.00, A 36.00 kPa; g1 0.3, tau1_s 2.00"
+    # a viscoelastic candidate fitted to no relaxation (the demo's: g1 8.95e-12)
+    assert parameters_text({"E_B_kPa": 17.6, "g1": 8.95e-12, "tau1_s": 1000.0}) == "B 17.60 kPa; g1 0, tau1_s 1000.0"
     text = compare_text(h, 0, 1)
     assert "added: viscoelastic; removed: nothing" in text and "x0.1" in text and "+20.0%" in text
 

@@ -250,6 +250,8 @@ def _num(v: float) -> str:
     if v is None or not isinstance(v, (int, float)) or not math.isfinite(v):
         return "-"
     a = abs(v)
+    if a < 1e-6:  # a fit at its bound (no relaxation: g1 9e-12) reads as what it is
+        return "0"
     if a >= 100:
         return f"{v:.1f}"
     if a >= 1:
