@@ -9,7 +9,7 @@ from pathlib import Path
 
 from PySide6.QtCore import QByteArray, QSettings, QSize, Qt, QTimer
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import (QDockWidget, QFileDialog, QLabel, QMainWindow, QMessageBox, QProgressBar, QSizePolicy,
+from PySide6.QtWidgets import (QDockWidget, QFileDialog, QLabel, QMainWindow, QMessageBox, QSizePolicy,
                                QTabWidget, QToolBar, QToolButton, QWidget)
 
 from app import __version__
@@ -17,6 +17,7 @@ from app import __version__
 from .errors import show_error
 from .models.rig import RigController
 from .models.session import SessionModel
+from .panels.common import BusyBar
 from .panels.identification import IdentificationPanel
 from .panels.images import ImagesPanel
 from .panels.log import LogPanel
@@ -297,7 +298,7 @@ class MainWindow(QMainWindow):
 
     def _build_statusbar(self) -> None:
         sb = self.statusBar()
-        self.progress = QProgressBar()
+        self.progress = BusyBar()
         self.progress.setMaximumWidth(260)
         self.progress.setTextVisible(False)
         self.progress.hide()

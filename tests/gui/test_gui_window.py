@@ -194,3 +194,41 @@ def test_run_the_demo_with_one_click(window, qtbot):
         assert out.parameters[f"E_{region}_kPa"] == pytest.approx(modulus, rel=0.05), (region, out.parameters)
     assert len(out.starts) == 6  # the paper's starts, untouched
     assert "Identifiability" in panel.report.toPlainText()
+
+
+def test_busy_bars_step_twice_a_second_instead_of_animating(window, qtbot):
+    """Qt's busy animation (a progress bar's range 0..0) repaints about 55 times a
+    second, and each repaint composes the whole window, OpenGL view included: on
+    software OpenGL two such bars took 44 CPU-seconds of an 87-second diagnosis.
+    The window's busy bars step every PULSE_MS instead."""
+    from PySide6.QtCore import QEvent, QObject
+
+    from app.gui.panels.common import PULSE_MS, PULSE_STEPS, BusyBar
+
+    assert isinstance(window.progress, BusyBar) and isinstance(window.modelcheck_panel.progress, BusyBar)
+    bar = BusyBar()
+    qtbot.addWidget(bar)
+    bar.show()
+    paints, values = [0], set()
+
+    class Count(QObject):
+        def eventFilter(self, obj, ev):
+            if obj is bar and ev.type() == QEvent.Paint:
+                paints[0] += 1
+            return False
+
+    counter = Count()
+    bar.installEventFilter(counter)
+    bar.setRange(0, 0)
+    assert bar.busy and bar.maximum() == PULSE_STEPS
+    paints[0] = 0
+    for _ in range(8):
+        qtbot.wait(PULSE_MS // 2)
+        values.add(bar.value())
+    assert len(values) >= 3  # it moves
+    assert paints[0] <= 2 * 2000 // PULSE_MS + 2, paints[0]  # 2 s: a few repaints, not ~110
+    bar.setRange(0, 4)  # a known total: a plain progress bar again
+    bar.setValue(3)
+    assert not bar.busy and bar.value() == 3
+    qtbot.wait(PULSE_MS + 100)
+    assert bar.value() == 3

@@ -26,7 +26,7 @@ import pyqtgraph as pg
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QGridLayout, QGroupBox, QHBoxLayout,
-                               QHeaderView, QLabel, QPlainTextEdit, QProgressBar, QPushButton, QSplitter,
+                               QHeaderView, QLabel, QPlainTextEdit, QPushButton, QSplitter,
                                QTableWidget, QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
 from app.core.diagnose import MATERIAL_FRACTION, NEAR_TIE
@@ -39,7 +39,7 @@ from ..models.session import SessionModel
 from ..style import FORCE_KEY, force_pens, mono_font, region_color, style_plot
 from ..workers import Task
 from .base import Panel
-from .common import hint, ispin, normalized, scrolled
+from .common import BusyBar, hint, ispin, normalized, scrolled
 
 log = logging.getLogger("elastoid.gui")
 
@@ -182,7 +182,7 @@ class ModelCheckPanel(Panel):
         dl.addWidget(self.diagnose_button)
         sl.addWidget(dbox)
 
-        self.progress = QProgressBar()
+        self.progress = BusyBar()
         self.progress.setRange(0, 1)
         self.progress.setValue(0)
         self.progress.setTextVisible(True)
