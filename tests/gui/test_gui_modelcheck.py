@@ -367,6 +367,12 @@ def test_history_text_and_rows():
     assert parameters_text(h.versions[1].parameters) == "B 12.00, A 36.00 kPa; g1 0.3, tau1_s 2.00"
     # a viscoelastic candidate fitted to no relaxation (the demo's: g1 8.95e-12)
     assert parameters_text({"E_B_kPa": 17.6, "g1": 8.95e-12, "tau1_s": 1000.0}) == "B 17.60 kPa; g1 0, tau1_s 1000.0"
+    h0 = ModelHistory().with_version(("viscoelastic",), {"E_B_kPa": 10.0, "g1": 8.95e-12}, {"nmi": 1.0},
+                                     {"force_rms_N": 0.3, "chi2": 900.0})
+    h0 = h0.with_version(("viscoelastic",), {"E_B_kPa": 12.0, "g1": 0.3}, {"nmi": 1.0},
+                         {"force_rms_N": 0.03, "chi2": 90.0})
+    g1_line = next(line for line in compare_text(h0, 0, 1).splitlines() if line.strip().startswith("g1"))
+    assert g1_line.split() == ["g1", "0", "->", "0.3"], g1_line  # no percentage of a change from zero
     text = compare_text(h, 0, 1)
     assert "added: viscoelastic; removed: nothing" in text and "x0.1" in text and "+20.0%" in text
 

@@ -246,11 +246,15 @@ def _errors_text(misfit: dict) -> str:
     return ", ".join(parts)
 
 
+# a parameter's value below this is shown as 0, and a change from it has no percentage
+ZERO = 1e-6
+
+
 def _num(v: float) -> str:
     if v is None or not isinstance(v, (int, float)) or not math.isfinite(v):
         return "-"
     a = abs(v)
-    if a < 1e-6:  # a fit at its bound (no relaxation: g1 9e-12) reads as what it is
+    if a < ZERO:  # a fit at its bound (no relaxation: g1 9e-12) reads as what it is
         return "0"
     if a >= 100:
         return f"{v:.1f}"
@@ -365,7 +369,7 @@ def compare_text(history, i: int, j: int) -> str:
              "parameters"]
     for k, (x, y) in c["parameters"].items():
         change = ""
-        if isinstance(x, (int, float)) and isinstance(y, (int, float)) and x:
+        if isinstance(x, (int, float)) and isinstance(y, (int, float)) and abs(x) >= ZERO:
             change = f"  {100 * (y - x) / x:+.1f}%"
         lines.append(f"  {k:10s} {_num(x):>7s} -> {_num(y):>7s}{change}")
     lines.append(f"errors, RMS (ratio {j} / {i})")
