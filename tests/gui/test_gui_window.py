@@ -227,6 +227,12 @@ def test_busy_bars_step_twice_a_second_instead_of_animating(window, qtbot):
         values.add(bar.value())
     assert len(values) >= 3  # it moves
     assert paints[0] <= 2 * 2000 // PULSE_MS + 2, paints[0]  # 2 s: a few repaints, not ~110
+    bar.hide()  # hidden (the status bar's when nothing runs, a panel in another tab): nothing to move
+    held = bar.value()
+    qtbot.wait(PULSE_MS + 100)
+    assert bar.busy and bar.value() == held
+    bar.show()
+    qtbot.waitUntil(lambda: bar.value() != held, timeout=3 * PULSE_MS)
     bar.setRange(0, 4)  # a known total: a plain progress bar again
     bar.setValue(3)
     assert not bar.busy and bar.value() == 3

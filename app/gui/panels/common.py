@@ -23,23 +23,40 @@ class BusyBar(QProgressBar):
 
     def __init__(self, parent=None):
         super().__init__(parent)
+        self._busy = False
         self._pulse = QTimer(self)
         self._pulse.setInterval(PULSE_MS)
         self._pulse.timeout.connect(self._step)
 
     @property
     def busy(self) -> bool:
-        return self._pulse.isActive()
+        return self._busy
 
     def setRange(self, minimum: int, maximum: int) -> None:  # noqa: N802 (Qt's name)
-        if minimum == maximum == 0:
+        self._busy = minimum == maximum == 0
+        if self._busy:
             super().setRange(0, PULSE_STEPS)
             super().setValue(0)
+        else:
+            super().setRange(minimum, maximum)
+        self._run_pulse()
+
+    def _run_pulse(self) -> None:
+        """The pulse runs while busy and shown (a hidden bar, e.g. the status bar's
+        when nothing runs, has nothing to move)."""
+        if self._busy and self.isVisible():
             if not self._pulse.isActive():
                 self._pulse.start()
-            return
-        self._pulse.stop()
-        super().setRange(minimum, maximum)
+        else:
+            self._pulse.stop()
+
+    def showEvent(self, event) -> None:  # noqa: N802 (Qt's name)
+        super().showEvent(event)
+        self._run_pulse()
+
+    def hideEvent(self, event) -> None:  # noqa: N802 (Qt's name)
+        super().hideEvent(event)
+        self._run_pulse()
 
     def _step(self) -> None:
         super().setValue((self.value() + 1) % (PULSE_STEPS + 1))
