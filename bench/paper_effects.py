@@ -1,6 +1,6 @@
 """Hidden effects at paper size, through the command line as a user runs it.
 
-    python bench/paper_effects.py [--out DIR] [--cases visco,slide,...]
+    python bench/paper_effects.py [--out DIR] [--cases visco,slide,...] [--seed-offset N]
 
 For each case, ``elastoid simulate DIR/CASE --seed S ...`` writes the paper's
 phantom (90 x 90 x 96 mm, inclusion A of 63 kPa in B of 18 kPa, pressed
@@ -102,16 +102,19 @@ def _errors(params: dict, truth: dict) -> str:
     return ", ".join(f"{params[f'E_{k}_kPa'] / v - 1:+.1%}" for k, v in truth.items() if f"E_{k}_kPa" in params)
 
 
-def run(out: Path, name: str) -> list[str]:
+def run(out: Path, name: str, seed_offset: int = 0) -> list[str]:
     from app.core.effects import INFO
     from app.core.simulate import read_truth
 
     seed, options, hidden = CASES[name]
+    seed += seed_offset
+    if seed_offset:
+        name = f"{name}+{seed_offset}"
     folder = out / name
     if not (folder / "experiment.toml").is_file():
         _elastoid("simulate", str(folder), "--overwrite", "--seed", str(seed), *options)
-        if name in HOLD_FPS:
-            video_hold(folder, HOLD_FPS[name], seed)
+        if name.split("+")[0] in HOLD_FPS:
+            video_hold(folder, HOLD_FPS[name.split("+")[0]], seed)
     t = time.perf_counter()
     peak_gb = _elastoid("diagnose", str(folder), "--json", str(out / f"{name}.json"), "--quiet")
     seconds = time.perf_counter() - t
@@ -140,6 +143,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "paper_effects")
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--seed-offset", type=int, default=0,
+                    help="add this to every case's seed (a blind re-run on fresh noise, speckle and truth "
+                         "meshes; its folders are named CASE+OFFSET)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     head = ["case", "hidden", "verdict", "hidden's rank (score)", "moduli with it (B, A)", "error falls with it",
@@ -147,7 +153,7 @@ def main() -> int:
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for name in args.cases.split(","):
-        print("| " + " | ".join(run(args.out, name)) + " |", flush=True)
+        print("| " + " | ".join(run(args.out, name, args.seed_offset)) + " |", flush=True)
     return 0
 
 
