@@ -415,3 +415,30 @@ def test_a_near_tie_is_shown_under_the_verdict(window, qtbot):
     assert "Verdict: probe-slip" in text and "Near tie: compressibility scores slightly better" in text
     assert "fitted together, Poisson&#x27;s ratio comes out at 0.480" in text and "verdict goes to probe-slip" in text
     assert panel.verdict_row() == 1
+
+
+def test_a_verdict_of_none_names_an_effect_that_came_close(window, qtbot):
+    """The paper-size hidden Poisson's ratio with three frames (seed 1104): the
+    verdict is none, and the label says which effect came close and what it would
+    change, instead of "no candidate lowers the misfit by more than its parameters
+    cost"; so does the HTML report's data."""
+    from app.core.diagnose import Candidate, Diagnosis, ModelHistory, NoiseModel
+    from app.gui.models.modelcheck import Snapshot, report_data
+
+    def mis(chi2, excess_px):
+        return {"chi2": chi2, "force_rms_N": 0.02, "displacement_rms_px": 1.0, "displacement_excess_px": excess_px,
+                "displacement_floor_px": 0.19}
+
+    base = Candidate("", (), {"E_B_kPa": 15.54, "E_A_kPa": 107.03}, {}, mis(8665.7, 2.074))
+    h = ModelHistory().with_version((), base.parameters, {"nmi": 1.1}, base.misfit)
+    comp = Candidate("compressibility", ("compressibility",), {"E_B_kPa": 18.02, "E_A_kPa": 60.05, "nu": 0.391}, {},
+                     mis(2978.5, 1.478), 1, 5679.7, "the tissue changes volume")
+    d = Diagnosis("x", base, [comp], "none", NoiseModel(0.02, 10, 0.1, 10), 118.0)
+    panel = window.modelcheck_panel
+    snap = Snapshot(h, None, d, 0, "diagnose", "diagnosis: verdict none")
+    panel._show(panel.model.apply((None, None, snap)))
+    text = panel.verdict_label.text()
+    assert "Verdict: none" in text and "But compressibility comes close" in text and "removes 29%" in text
+    assert "A 60.0 kPa (now 107.0)" in text and "as well as the noise allows" not in text
+    assert not panel.add_verdict_button.isEnabled()  # a near miss is not a verdict
+    assert "compressibility comes close" in report_data(snap)["diagnosis"]["rest"]

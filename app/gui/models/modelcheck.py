@@ -319,8 +319,7 @@ def verdict_parts(diagnosis) -> tuple[str, str, str]:
 
     d = diagnosis
     if d.verdict == "none":
-        return ("Verdict: none", ". No candidate effect lowers the misfit by more than its parameters cost: the "
-                "current model explains the data as well as the noise allows.", "")
+        return "Verdict: none", f". {d.none_text()}.", ""
     c = d.candidate(d.verdict)
     ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
     return f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.", d.tie_advice() or ""
