@@ -513,8 +513,8 @@ class Diagnosis:
         if not misses:
             return text
         settle = (f"Frames recorded closer in strain (about 2% apart) are tracked more precisely and usually settle "
-                  f"it; if the setup makes {' or '.join(INFO[c.effect].title for c, _ in misses)} plausible, add it "
-                  f"and compare the versions")
+                  f"it; if the setup makes {' or '.join(INFO[c.effect].title for c, _ in misses)} plausible, add "
+                  f"{'it' if len(misses) == 1 else 'that effect'} and compare the versions")
         if len(misses) == 2:
             (a, fa), (b, fb) = misses
             return (f"{text}. But {a.effect} (score {a.score:+,.0f}, {fa:.0%} removed) and {b.effect} (score "
