@@ -106,15 +106,16 @@ def run(out: Path, name: str, seed_offset: int = 0) -> list[str]:
     from app.core.effects import INFO
     from app.core.simulate import read_truth
 
-    seed, options, hidden = CASES[name]
+    case = name
+    seed, options, hidden = CASES[case]
     seed += seed_offset
     if seed_offset:
-        name = f"{name}+{seed_offset}"
+        name = f"{case}+{seed_offset}"
     folder = out / name
     if not (folder / "experiment.toml").is_file():
         _elastoid("simulate", str(folder), "--overwrite", "--seed", str(seed), *options)
-        if name.split("+")[0] in HOLD_FPS:
-            video_hold(folder, HOLD_FPS[name.split("+")[0]], seed)
+        if case in HOLD_FPS:
+            video_hold(folder, HOLD_FPS[case], seed)
     t = time.perf_counter()
     peak_gb = _elastoid("diagnose", str(folder), "--json", str(out / f"{name}.json"), "--quiet")
     seconds = time.perf_counter() - t
