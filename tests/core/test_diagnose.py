@@ -373,14 +373,17 @@ def test_a_near_tie_of_two_effects_is_settled_by_fitting_them_together():
 
 
 def test_a_verdict_of_none_says_why_and_names_an_effect_that_came_close():
-    """The paper-size hidden Poisson's ratio of 0.40 with three frames (seed 1104,
-    bench/paper_effects.py --seed-offset 1000): compressibility fitted nu 0.391,
-    scored +5,680 and put the moduli within 5% of the truth (the baseline's A was
-    off by 70%), but removed 29% of the error beyond the noise (2.07 -> 1.48 px),
-    so the verdict is none. The verdict's text must not say that nothing lowers
-    the misfit by more than its parameters cost; it names the effect that came
-    close, with the moduli it gives. An effect that removes less than
-    NEAR_MISS_FRACTION, or fits no physical change, is not named."""
+    """Numbers from the paper-size hidden Poisson's ratio of 0.40 with three frames
+    (seed 1104, bench/paper_effects.py --seed-offset 1000): compressibility fitted
+    nu 0.391, scored +5,680 and put the moduli within 5% of the truth (the
+    baseline's A was off by 70%), but removed 29% of the error beyond the noise
+    (2.07 -> 1.48 px). Until the chi2 rule (is_material, the test above) that made
+    the verdict none; here the candidates are given as not material, as one that
+    also lowered the images' chi2 by less than 2 per component would be. The
+    verdict's text must not say that nothing lowers the misfit by more than its
+    parameters cost; it names the effect that came close, with the moduli it
+    gives. An effect that removes less than NEAR_MISS_FRACTION, or fits no
+    physical change, is not named."""
     from app.core.diagnose import (MATERIAL_FRACTION, NEAR_MISS_FRACTION, Candidate, Diagnosis, NoiseModel,
                                    choose_verdict)
 
@@ -424,6 +427,46 @@ def test_a_verdict_of_none_says_why_and_names_an_effect_that_came_close():
                       material=True)
     assert diag([found, hyper]).none_text() == "" and diag([found, hyper]).near_misses() == []
     assert NEAR_MISS_FRACTION < MATERIAL_FRACTION
+
+
+def test_a_chi2_that_falls_far_beyond_the_mesh_error_is_material():
+    """Paper size with three frames (bench/paper_effects.py --seed-offset 1000, the
+    misfits of its JSON): a hidden Poisson's ratio of 0.40 (seed 1104) fitted by
+    compressibility removed only 29% of the RMS error beyond the noise, the rest in
+    poorly tracked blocks under the probe, but lowered the images' chi2 from 7,033
+    to 1,346 over 318 tracked components (17.9 each): material. A hidden probe slip
+    (seed 1103): 26%, 4.5 per component: material. With no hidden effect, the
+    demo's located inclusion (+199) lowered it by 0.99 per component and seed
+    5106's (+132) by 0.57: not material, as before."""
+    from app.core.diagnose import (MATERIAL_CHI2_PER_COMPONENT, MATERIAL_FRACTION, chi2_drop_per_component,
+                                   explained, is_material, materiality_note)
+
+    def mis(chi2_force, chi2_images, excess_px, floor_px, n_images, force_excess_N=0.006, force_floor_N=0.0188):
+        return {"chi2": chi2_force + chi2_images, "chi2_force": chi2_force, "chi2_images": chi2_images,
+                "displacement_excess_px": excess_px, "displacement_floor_px": floor_px,
+                "force_excess_N": force_excess_N, "force_floor_N": force_floor_N, "n_force": 1481,
+                "n_images": n_images}
+
+    nu_before, nu_after = mis(1632.5, 7033.1, 2.0743, 0.1919, 318), mis(1632.5, 1345.9, 1.4778, 0.1919, 318)
+    assert explained(nu_before, nu_after)["displacement"] < MATERIAL_FRACTION
+    assert chi2_drop_per_component(nu_before, nu_after)["displacement"] == pytest.approx(17.88, abs=0.01)
+    assert is_material(nu_before, nu_after)
+    note = materiality_note(nu_before, nu_after)
+    assert "removes 29% of the error beyond the noise" in note and "by 17.9 per tracked displacement" in note
+    slip_before, slip_after = mis(1520.6, 2625.0, 0.6724, 0.1584, 302), mis(1520.6, 1263.8, 0.5004, 0.1584, 302)
+    assert is_material(slip_before, slip_after) and materiality_note(slip_before, slip_after)
+    demo_before = mis(1405.6, 1039.6, 0.4795, 0.2188, 300, 0.0, 0.0207)
+    demo_after = mis(1405.6, 742.0, 0.4228, 0.2188, 300, 0.0, 0.0207)
+    assert chi2_drop_per_component(demo_before, demo_after)["displacement"] < MATERIAL_CHI2_PER_COMPONENT / 2
+    assert not is_material(demo_before, demo_after) and materiality_note(demo_before, demo_after) == ""
+    none_before = mis(1441.9, 960.8, 0.5534, 0.2020, 286, 0.0, 0.0204)
+    none_after = mis(1441.9, 798.8, 0.5142, 0.2020, 286, 0.0, 0.0204)
+    assert not is_material(none_before, none_after)
+    # material by its share: no note; a misfit saved without the counts: the share alone decides
+    assert materiality_note(nu_before, mis(1632.5, 700.0, 0.9, 0.1919, 318)) == ""
+    old = {k: v for k, v in nu_after.items() if not k.startswith("n_")}
+    assert chi2_drop_per_component({k: v for k, v in nu_before.items() if not k.startswith("n_")}, old) == {
+        "force": None, "displacement": None}
 
 
 def test_history_is_immutable_and_round_trips():

@@ -29,7 +29,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QGridLay
                                QHeaderView, QLabel, QPlainTextEdit, QPushButton, QSplitter,
                                QTableWidget, QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
-from app.core.diagnose import MATERIAL_FRACTION, NEAR_TIE
+from app.core.diagnose import MATERIAL_CHI2_PER_COMPONENT, MATERIAL_FRACTION, NEAR_TIE
 from app.core.effects import EFFECT_IDS, INFO
 from app.core.effects.compressibility import NU_NEGLIGIBLE
 
@@ -343,7 +343,8 @@ class ModelCheckPanel(Panel):
         lay.addWidget(hint("Score = chi2(current) - chi2(current + effect) - k ln N: the drop of the misfit under "
                            "the noise model, less what the effect's k parameters cost (BIC). The verdict is the best "
                            "positive score among the effects that also remove at least "
-                           f"{MATERIAL_FRACTION:.0%} of the error beyond the noise (and move a Poisson's ratio at "
+                           f"{MATERIAL_FRACTION:.0%} of the error beyond the noise or lower the chi2 by "
+                           f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement (and move a Poisson's ratio at "
                            f"least {NU_NEGLIGIBLE} from the model's), else none. Among those scoring at least "
                            f"{NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still needed when "
                            "the two best are fitted together, else the one whose pattern the misfit has most "
