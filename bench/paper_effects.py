@@ -29,6 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+NINE_FRAMES = ",".join(f"{14.8 * i / 8:.2f}" for i in range(9))
 # name -> (seed, simulate options, the hidden effect's id or "none")
 CASES = {
     "none": (106, [], "none"),
@@ -45,6 +46,9 @@ CASES = {
     "visco-ramp": (121, ["--effects", "viscoelastic"], "viscoelastic"),
     "slip-123": (123, ["--effects", "probe-slip"], "probe-slip"),
     "slide-unload": (122, ["--effects", "sliding-bottom", "--hold-s", "3", "--unload"], "sliding-bottom"),
+    # nine frames, one every 1.85 mm (2% of the height): what the user guide advises for image effects
+    "none-9": (106, ["--frames-at", NINE_FRAMES], "none"),
+    "slip-9": (103, ["--effects", "probe-slip", "--frames-at", NINE_FRAMES], "probe-slip"),
     # a frame every half millimetre (31 frames): memory and time with many frames
     "slip-31": (131, ["--effects", "probe-slip", "--frames-at", ",".join(f"{14.8 * i / 30:.3f}" for i in range(31))],
                 "probe-slip"),
