@@ -561,7 +561,8 @@ class Diagnosis:
             return ("No candidate effect lowers the misfit by more than its parameters cost: the current model "
                     "explains the data as well as the noise allows")
         text = ("No candidate is a finding: those that lower the misfit by more than their parameters cost remove "
-                f"less than {MATERIAL_FRACTION:.0%} of the error beyond the noise, or fit no physical change")
+                f"less than {MATERIAL_FRACTION:.0%} of the error beyond the noise and lower the chi2 by less than "
+                f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement, or fit no physical change")
         misses = self.near_misses()[:2]
         if not misses:
             return text
