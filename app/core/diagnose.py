@@ -166,27 +166,33 @@ def chi2_drop_per_component(before: dict, after: dict) -> dict:
     return out
 
 
+def _material_share(shares: dict) -> bool:
+    """Whether the shares of :func:`explained` reach MATERIAL_FRACTION in a channel."""
+    return any(f is not None and f >= MATERIAL_FRACTION for f in shares.values())
+
+
+def _material_drops(before: dict, after: dict) -> dict:
+    """The channels whose chi2 falls by at least MATERIAL_CHI2_PER_COMPONENT per component, with the drop."""
+    return {ch: g for ch, g in chi2_drop_per_component(before, after).items()
+            if g is not None and g >= MATERIAL_CHI2_PER_COMPONENT}
+
+
 def is_material(before: dict, after: dict) -> bool:
     """A candidate is material when it removes at least MATERIAL_FRACTION of the
     current model's error in the force or in the displacement, or lowers the
     force's or the images' chi2 by at least MATERIAL_CHI2_PER_COMPONENT per
     measured component."""
-    return (any(f is not None and f >= MATERIAL_FRACTION for f in explained(before, after).values())
-            or any(g is not None and g >= MATERIAL_CHI2_PER_COMPONENT
-                   for g in chi2_drop_per_component(before, after).values()))
+    return _material_share(explained(before, after)) or bool(_material_drops(before, after))
 
 
 def materiality_note(before: dict, after: dict) -> str:
     """For a candidate material by its chi2 alone (it removes less than
     MATERIAL_FRACTION of the RMS error), why it counts, in words; else ""."""
-    if any(f is not None and f >= MATERIAL_FRACTION for f in explained(before, after).values()):
-        return ""
-    drops = {ch: g for ch, g in chi2_drop_per_component(before, after).items()
-             if g is not None and g >= MATERIAL_CHI2_PER_COMPONENT}
-    if not drops:
+    shares, drops = explained(before, after), _material_drops(before, after)
+    if _material_share(shares) or not drops:
         return ""
     ch, g = max(drops.items(), key=lambda kv: kv[1])
-    share = explained(before, after).get(ch)
+    share = shares.get(ch)
     what = "tracked displacement" if ch == "displacement" else "force sample"
     removed = f"removes {max(share, 0.0):.0%} of the error beyond the noise" if share is not None else \
         "leaves the error beyond the noise about where it was"
