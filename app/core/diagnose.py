@@ -177,6 +177,12 @@ def _material_drops(before: dict, after: dict) -> dict:
             if g is not None and g >= MATERIAL_CHI2_PER_COMPONENT}
 
 
+def not_material_text() -> str:
+    """Why a candidate that earns its parameters is not material, in words."""
+    return (f"it removes less than {MATERIAL_FRACTION:.0%} of the error beyond the noise and lowers the chi2 by "
+            f"less than {MATERIAL_CHI2_PER_COMPONENT:g} per measurement")
+
+
 def is_material(before: dict, after: dict) -> bool:
     """A candidate is material when it removes at least MATERIAL_FRACTION of the
     current model's error in the force or in the displacement, or lowers the
@@ -256,7 +262,7 @@ def support_warning(d: "Diagnosis", c: "Candidate", parent: int) -> str:
                 f"{c.score:+.1f}): the data do not show it, and version {parent} explains them as well; revert to "
                 f"version {parent}")
     if not c.material:
-        why = c.negligible or f"it removes less than {MATERIAL_FRACTION:.0%} of the error beyond the noise"
+        why = c.negligible or not_material_text()
         return f"{c.effect} is not a finding ({why}); version {parent} is the simpler model of these measurements"
     return ""
 
@@ -396,8 +402,7 @@ class Candidate:
             return text
         if self.negligible:
             return f"{text} (but {self.negligible}, so it is not a verdict)"
-        return (f"{text} (but it removes less than {MATERIAL_FRACTION:.0%} of the error beyond the "
-                f"noise, so it is not a verdict)")
+        return f"{text} (but {not_material_text()}, so it is not a verdict)"
 
     def to_json_dict(self) -> dict:
         params = dict(self.parameters)

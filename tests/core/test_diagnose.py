@@ -438,8 +438,8 @@ def test_a_chi2_that_falls_far_beyond_the_mesh_error_is_material():
     (seed 1103): 26%, 4.5 per component: material. With no hidden effect, the
     demo's located inclusion (+199) lowered it by 0.99 per component and seed
     5106's (+132) by 0.57: not material, as before."""
-    from app.core.diagnose import (MATERIAL_CHI2_PER_COMPONENT, MATERIAL_FRACTION, chi2_drop_per_component,
-                                   explained, is_material, materiality_note)
+    from app.core.diagnose import (MATERIAL_CHI2_PER_COMPONENT, MATERIAL_FRACTION, Candidate,
+                                   chi2_drop_per_component, explained, is_material, materiality_note)
 
     def mis(chi2_force, chi2_images, excess_px, floor_px, n_images, force_excess_N=0.006, force_floor_N=0.0188):
         return {"chi2": chi2_force + chi2_images, "chi2_force": chi2_force, "chi2_images": chi2_images,
@@ -459,6 +459,12 @@ def test_a_chi2_that_falls_far_beyond_the_mesh_error_is_material():
     demo_after = mis(1405.6, 742.0, 0.4228, 0.2188, 300, 0.0, 0.0207)
     assert chi2_drop_per_component(demo_before, demo_after)["displacement"] < MATERIAL_CHI2_PER_COMPONENT / 2
     assert not is_material(demo_before, demo_after) and materiality_note(demo_before, demo_after) == ""
+    # its evidence says why it is no verdict, by both rules
+    demo_inclusion = Candidate("inclusion", ("inclusion",), {}, {}, demo_after, 4, 199.0, "a stiffer region",
+                               material=False)
+    assert demo_inclusion.explanation.endswith(
+        f"(but it removes less than 30% of the error beyond the noise and lowers the chi2 by less than "
+        f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement, so it is not a verdict)")
     none_before = mis(1441.9, 960.8, 0.5534, 0.2020, 286, 0.0, 0.0204)
     none_after = mis(1441.9, 798.8, 0.5142, 0.2020, 286, 0.0, 0.0204)
     assert not is_material(none_before, none_after)
