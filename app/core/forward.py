@@ -270,9 +270,11 @@ class ReducedModel:
                 break
 
     def _enrich(self, theta) -> bool:
-        a = self.coords(theta, check=False)
-        u = a @ self._Vt[: self.k]
-        r = sum(t * (b - A @ u) for t, b, A in zip(theta, self.b, self.A))
+        """Add the preconditioned residual at ``theta`` to the basis. The residual
+        is read from its orthonormal basis (one dense product) rather than
+        recomputed from the terms' sparse matrices (one product each)."""
+        theta = np.asarray(theta, float)
+        r = self._residual_coefficients(theta, self.coords(theta, check=False)) @ self._Qwt[: self._nw]
         self.n_back_solves += 1
         return self._add(self._prec.solve(r))
 
@@ -298,11 +300,15 @@ class ReducedModel:
         if a is None:
             a = self._solve_reduced(theta)
         Q = len(theta)
-        # column order: b_1..b_Q, then A_1 v_1..A_Q v_1, A_1 v_2, ...
-        cvec = np.concatenate([theta, -np.outer(a, theta).ravel()])
-        r = np.linalg.norm(self._R @ cvec)
+        r = np.linalg.norm(self._residual_coefficients(theta, a))
         bn = np.linalg.norm(self._R[:Q, :Q] @ theta)
         return r, r / max(bn, 1e-300)
+
+    def _residual_coefficients(self, theta, a) -> np.ndarray:
+        """The full system's residual at ``theta`` for reduced coordinates ``a``, as
+        coefficients on the orthonormal residual basis (rows of ``_Qwt``)."""
+        # column order: b_1..b_Q, then A_1 v_1..A_Q v_1, A_1 v_2, ...
+        return self._R @ np.concatenate([theta, -np.outer(a, theta).ravel()])
 
     def force_N_per_mm(self, theta, a=None) -> float:
         theta = np.asarray(theta, float)
