@@ -7,7 +7,8 @@ phantom (90 x 90 x 96 mm, inclusion A of 63 kPa in B of 18 kPa, pressed
 14.8 mm; truth on a mesh 0.7 the size of the identification mesh, frames from
 the scatterer simulator, noisy force) with one effect hidden in the truth, and
 ``elastoid diagnose DIR/CASE --json DIR/CASE.json`` diagnoses it with every
-candidate. An experiment folder already in DIR is reused (the neo-Hookean
+candidate. The ``small-``, ``boxed-`` and ``wide-`` cases are other phantoms
+(sizes, region A, moduli, travel and frames of their own). An experiment folder already in DIR is reused (the neo-Hookean
 truth takes minutes to simulate). Prints a table: the verdict (and its rival
 in a near tie), where the hidden effect ranked and scored, the moduli with it and with the baseline,
 how much the error beyond the noise falls with it in the effect's channel
@@ -30,6 +31,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 NINE_FRAMES = ",".join(f"{14.8 * i / 8:.2f}" for i in range(9))
+# other phantoms (their identification meshes are made anew): a small block, a
+# box-shaped region A, and a wide block recorded with five frames
+SMALL = ["--size-mm", "60,60,50", "--inclusion", "sphere:30,30,30,8", "--moduli", "B=10,A=40", "--depth-mm", "6",
+         "--frames-at", "0,3,6"]
+BOXED = ["--size-mm", "80,80,60", "--inclusion", "box:40,40,38,16,16,10", "--moduli", "B=25,A=80", "--depth-mm", "8",
+         "--frames-at", "0,4,8"]
+WIDE = ["--size-mm", "100,70,80", "--inclusion", "sphere:50,35,55,10", "--moduli", "B=8,A=30", "--depth-mm", "10",
+        "--frames-at", "0,2.5,5,7.5,10"]
 # name -> (seed, simulate options, the hidden effect's id or "none")
 CASES = {
     "none": (106, [], "none"),
@@ -57,6 +66,15 @@ CASES = {
     "visco-video": (141, ["--effects", "viscoelastic", "--hold-s", "30", "--g1", "0.3", "--tau1-s", "2",
                           "--frames-at", ",".join(f"{14.8 * i / 74:.3f}" for i in range(75))], "viscoelastic"),
 }
+CASES.update({
+    "small-none": (11, SMALL, "none"),
+    "small-none-12": (12, SMALL, "none"),
+    "small-slide": (13, [*SMALL, "--effects", "sliding-bottom"], "sliding-bottom"),
+    "boxed-none": (21, BOXED, "none"),
+    "boxed-slip": (22, [*BOXED, "--effects", "probe-slip"], "probe-slip"),
+    "wide-none": (31, WIDE, "none"),
+    "wide-nu": (32, [*WIDE, "--nu", "0.4"], "compressibility"),
+})
 HOLD_FPS = {"visco-video": 5.0}  # cases whose hold is recorded at this rate
 
 

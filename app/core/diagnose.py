@@ -442,8 +442,9 @@ def near_tie(ranked) -> list:
 
 
 # effects a near tie between two of which is settled by fitting both together
-# (TieBreak); the inclusion needs a mesh of its own and the hyperelastic model a
-# nonlinear solve per evaluation, so their ties go to the pattern match
+# (TieBreak); the inclusion too, with one of these, on its own mesh
+# (_inclusion_joint). The hyperelastic model needs a nonlinear solve per
+# evaluation, so its ties go to the pattern match
 JOINT_EFFECTS = ("viscoelastic", "sliding-bottom", "probe-slip", "compressibility")
 
 
@@ -462,11 +463,18 @@ class TieBreak:
     +1,415, with the pattern match a tie (79% against 78%). Fitted together, the
     Poisson's ratio came back to 0.480, within the 0.02 the mesh error alone moves
     it (compressibility.NU_NEGLIGIBLE); with compressibility in the model, the
-    slip still lowered chi2 by 78."""
+    slip still lowered chi2 by 78.
+
+    An inclusion tied with one of JOINT_EFFECTS is fitted with it on its own mesh
+    (_inclusion_joint), and yields when its modulus there comes out close to that
+    of the tissue it replaces (app.core.effects.inclusion.negligible)."""
 
     effects: tuple  # the two tied effects, the better score first
     joint: Candidate
     yields: dict  # effect -> why it yields to the other, or ""
+    # effect -> chi2 of the model it was judged on top of (the other effect; for the
+    # inclusion, the other effect on the inclusion's mesh)
+    beside_chi2: dict = field(default_factory=dict)
 
     @property
     def winner(self) -> str:
@@ -480,15 +488,18 @@ class TieBreak:
         return next(e for e in self.effects if e != self.winner) if self.winner else ""
 
     def state(self) -> dict:
-        return {"effects": list(self.effects), "joint": self.joint.state(), "yields": self.yields}
+        return {"effects": list(self.effects), "joint": self.joint.state(), "yields": self.yields,
+                "beside_chi2": self.beside_chi2}
 
     @classmethod
     def from_state(cls, d: dict) -> "TieBreak":
-        return cls(tuple(d["effects"]), Candidate.from_state(d["joint"]), dict(d["yields"]))
+        return cls(tuple(d["effects"]), Candidate.from_state(d["joint"]), dict(d["yields"]),
+                   dict(d.get("beside_chi2", {})))
 
     def to_json_dict(self) -> dict:
         return {"effects": list(self.effects), "parameters": self.joint.parameters,
                 "chi2": round(float(self.joint.misfit["chi2"]), 3),
+                "beside_chi2": {e: round(float(v), 3) for e, v in self.beside_chi2.items()},
                 "yields": {e: (r or None) for e, r in self.yields.items()}, "verdict": self.winner or None}
 
 
@@ -610,6 +621,8 @@ class Diagnosis:
         elif tb is not None and tb.loser:
             why = (f"; {tb.loser} ({self.candidate(tb.loser).score:+,.0f}) yields to {tb.winner}: fitted together, "
                    f"{tb.yields[tb.loser]}")
+        elif tb is not None and r in tb.effects and all(tb.yields.values()):
+            why = f"; fitted together, each yields to the other ({'; '.join(tb.yields[e] for e in tb.effects)})"
         if c.score > v.score and (tb is None or tb.loser != r):
             why += (f"; the verdict goes to {v.effect}, whose pattern the misfit has more closely "
                    f"({max(v.signature or 0, 0):.0%} against {max(c.signature or 0, 0):.0%})")
@@ -746,13 +759,18 @@ def same_mesh_model(problem: EffectProblem, cp: EffectProblem, near_kPa=None, ca
     effect, three times the inclusion's penalty of 4 ln N (26.5), and the
     inclusion was the verdict on one of them. ``near_kPa``: the moduli its fit
     will start from (its reduced model is trained near them)."""
+    return _model_like(problem, problem.effects, near_kPa, cancel, mesh=_without_inclusion(problem, cp))
+
+
+def _without_inclusion(problem: EffectProblem, cp: EffectProblem):
+    """The inclusion candidate ``cp``'s mesh with the located sphere's tets given
+    back to the regions of ``problem`` they lie in."""
     m = cp.mesh
     n = len(problem.mesh.region_names)
     labels = m.labels.copy()
     added = labels >= n  # the located sphere: the mesh's last region
     labels[added] = paint_labels(m.points_mm[m.tets[added]].mean(axis=1), problem.exp.specimen.regions)
-    mesh = replace(m, labels=labels, region_names=problem.mesh.region_names)
-    return _model_like(problem, problem.effects, near_kPa, cancel, mesh=mesh)
+    return replace(m, labels=labels, region_names=problem.mesh.region_names)
 
 
 def _model_like(problem: EffectProblem, effects, near_kPa, cancel, **kw) -> EffectProblem:
@@ -945,38 +963,105 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
 def _tie_break(ranked, problem: EffectProblem, tracked, noise, max_evaluations, say, cancel) -> TieBreak | None:
     """The two best findings of a near tie among JOINT_EFFECTS fitted together (see
     TieBreak); None when there are not two, or when the joint model cannot be fitted."""
-    tie = [c for c in near_tie(ranked) if c.effect in JOINT_EFFECTS]
-    if len(tie) < 2:
+    joinable = [c for c in near_tie(ranked) if c.effect in JOINT_EFFECTS or _joinable_inclusion(c, problem)]
+    if len(joinable) < 2:
         return None
-    a, b = tie[:2]
+    a, b = joinable[:2]
     if cancel is not None and cancel.is_set():
         raise Cancelled("diagnosis cancelled")
     say(f"{a.effect} and {b.effect} explain the misfit nearly equally well: fitting them together")
-    effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {a.effect, b.effect})
     try:
-        cp = _model_like(problem, effects, problem.moduli(a.parameters), cancel, base=problem, progress=say)
-        lik = Likelihood(cp, tracked, noise)
-        # the better one's moduli and parameters, with the other's own parameters
-        res = _fit_polished(cp, lik, [cp.complete({**b.parameters, **a.parameters})], cancel, max_evaluations,
-                            say, "the joint fit")
+        if "inclusion" in (a.effect, b.effect):
+            joint, beside = _inclusion_joint(a, b, problem, tracked, noise, max_evaluations, say, cancel)
+        else:
+            effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {a.effect, b.effect})
+            cp = _model_like(problem, effects, problem.moduli(a.parameters), cancel, base=problem, progress=say)
+            lik = Likelihood(cp, tracked, noise)
+            # the better one's moduli and parameters, with the other's own parameters
+            res = _fit_polished(cp, lik, [cp.complete({**b.parameters, **a.parameters})], cancel, max_evaluations,
+                                say, "the joint fit")
+            joint = Candidate(f"{a.effect}+{b.effect}", effects, res.parameters, res.cost,
+                              _misfit(lik, res.parameters), a.n_parameters + b.n_parameters)
+            cp.release(keep=problem)
+            beside = {a.effect: b, b.effect: a}
     except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:
         say(f"the joint fit failed ({exc}); the pattern match decides")
         return None
-    joint = Candidate(f"{a.effect}+{b.effect}", effects, res.parameters, res.cost, _misfit(lik, res.parameters),
-                      a.n_parameters + b.n_parameters)
-    cp.release(keep=problem)
     lnN = math.log(noise.n)
-    tb = TieBreak((a.effect, b.effect), joint, {a.effect: yields(a, b, joint, lnN, problem.nu),
-                                                b.effect: yields(b, a, joint, lnN, problem.nu)})
+    replaced = _replaced(problem, joint.inclusion) if joint.inclusion else None
+    tb = TieBreak((a.effect, b.effect), joint,
+                  {c.effect: yields(c, beside[c.effect], joint, lnN, problem.nu, replaced) for c in (a, b)},
+                  {c.effect: float(beside[c.effect].misfit["chi2"]) for c in (a, b)})
     say(f"joint fit: chi2 {joint.misfit['chi2']:,.0f}; "
         + ("; ".join(f"{e} yields ({r})" for e, r in tb.yields.items() if r) or "neither yields"))
     return tb
 
 
-def yields(c: Candidate, other: Candidate, joint: Candidate, lnN: float, nu_model: float) -> str:
+def _joinable_inclusion(c: Candidate, problem: EffectProblem) -> bool:
+    """Whether the inclusion candidate ``c`` can be fitted together with another
+    effect (_inclusion_joint): its model is at hand, and the current model has
+    neither an inclusion nor large deformation (a nonlinear solve per evaluation)."""
+    return (c.effect == "inclusion" and c.problem is not None and c.inclusion is not None
+            and not {"inclusion", "hyperelastic"} & set(problem.effects))
+
+
+def _inclusion_joint(a: Candidate, b: Candidate, problem: EffectProblem, tracked, noise, max_evaluations, say,
+                     cancel) -> tuple[Candidate, dict]:
+    """The inclusion and another effect of a near tie fitted together, on the
+    inclusion's mesh. A fresh mesh alone moves chi2 by about a hundred (see
+    same_mesh_model), more than an effect's parameters cost, so each is judged on
+    top of the other on that one mesh: the other effect is fitted there too, with
+    the sphere's tets given back to their regions. Returns the joint candidate and,
+    for each effect, the candidate it is judged on top of (see yields)."""
+    inc, other = (a, b) if a.effect == "inclusion" else (b, a)
+    cp, x = inc.problem, other.effect
+    say(f"fitting {x} on the inclusion's mesh")
+    effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {x})
+    xp = _model_like(problem, effects, problem.moduli(other.parameters), cancel, mesh=_without_inclusion(problem, cp))
+    lik = Likelihood(xp, tracked, noise)
+    res = _fit_polished(xp, lik, [xp.complete(other.parameters)], cancel, max_evaluations, say, x)
+    alone = Candidate(x, effects, res.parameters, res.cost, _misfit(lik, res.parameters), other.n_parameters)
+    say(f"{x} on the inclusion's mesh: chi2 {alone.misfit['chi2']:,.1f} ({other.misfit['chi2']:,.1f} on its own)")
+    xp.release()
+    del xp, lik
+    effects = tuple(e for e in EFFECT_IDS if e in set(cp.effects) | {x})
+    jp = EffectProblem.from_experiment(cp.exp, effects=effects, mesh=cp.mesh, base=cp, frames=cp.frames,
+                                       roi_px=cp.roi, nu=cp.nu, cost=cp.cost_kind, inclusion=cp.inclusion,
+                                       near_kPa=cp.moduli(inc.parameters), progress=say, cancel=cancel)
+    lik = Likelihood(jp, tracked, noise)
+    # the inclusion's moduli and sphere, with the other's own parameters
+    res = _fit_polished(jp, lik, [jp.complete({**other.parameters, **inc.parameters})], cancel, max_evaluations,
+                        say, "the joint fit")
+    joint = Candidate(f"{a.effect}+{b.effect}", effects, res.parameters, res.cost, _misfit(lik, res.parameters),
+                      a.n_parameters + b.n_parameters, inclusion=inc.inclusion)
+    jp.release(keep=cp)
+    return joint, {"inclusion": alone, x: inc}
+
+
+def _replaced(problem: EffectProblem, inclusion: dict) -> dict:
+    """The moduli of the described regions a located sphere takes the place of,
+    with their shares of its volume (see inclusion.surroundings)."""
+    from app.core.effects.inclusion import surroundings
+
+    return {problem.moduli_names[i]: f for i, f in surroundings(inclusion, problem.exp.specimen).items()}
+
+
+def _inclusion_negligible(inclusion: dict, params: dict, replaced: dict) -> str:
+    """inclusion.negligible for a located sphere with fitted ``params``, against the
+    tissue it replaces (``replaced``, from _replaced)."""
+    from app.core.effects.inclusion import negligible
+
+    return negligible(params[f"E_{inclusion['name']}_kPa"],
+                      [(n.removeprefix("E_").removesuffix("_kPa"), f, params[n]) for n, f in replaced.items()])
+
+
+def yields(c: Candidate, other: Candidate, joint: Candidate, lnN: float, nu_model: float,
+           replaced: dict | None = None) -> str:
     """Why the tied finding ``c`` yields to ``other`` given their ``joint`` fit (see
     TieBreak), or "": added on top of ``other`` it does not earn its parameters
-    (``lnN`` each), or its fitted value there is no finding."""
+    (``lnN`` each), or its fitted value there is no finding (for an inclusion: its
+    modulus within app.core.effects.inclusion.NEGLIGIBLE_RATIO of the tissue it
+    replaces, ``replaced``: see _replaced)."""
     gain = other.misfit["chi2"] - joint.misfit["chi2"]
     cost = c.n_parameters * lnN
     if gain < 0:
@@ -984,6 +1069,10 @@ def yields(c: Candidate, other: Candidate, joint: Candidate, lnN: float, nu_mode
     if gain <= cost:
         return (f"{c.effect} lowers chi2 by {gain:,.0f} on top of {other.effect}, less than its parameters "
                 f"cost ({cost:,.0f})")
+    if c.effect == "inclusion" and replaced and joint.inclusion:
+        why = _inclusion_negligible(joint.inclusion, joint.parameters, replaced)
+        if why:
+            return f"with {other.effect}, {why}"
     if c.effect == "compressibility":
         from app.core.effects.compressibility import NU_NEGLIGIBLE, negligible
 
@@ -1085,6 +1174,8 @@ def _negligible(eff, problem: EffectProblem, cand: Candidate) -> str:
         from app.core.effects.compressibility import negligible
 
         return negligible(cand.parameters["nu"], problem.nu)
+    if eff == "inclusion" and cand.inclusion:
+        return _inclusion_negligible(cand.inclusion, cand.parameters, _replaced(problem, cand.inclusion))
     return ""
 
 

@@ -32,6 +32,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QGridLay
 from app.core.diagnose import MATERIAL_CHI2_PER_COMPONENT, MATERIAL_FRACTION, NEAR_TIE
 from app.core.effects import EFFECT_IDS, INFO
 from app.core.effects.compressibility import NU_NEGLIGIBLE
+from app.core.effects.inclusion import NEGLIGIBLE_RATIO as INCLUSION_RATIO
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
                                  diagnosis_rows, frame_label, history_rows, parameters_text, verdict_parts)
@@ -345,8 +346,9 @@ class ModelCheckPanel(Panel):
                            "positive score among the effects that also remove at least "
                            f"{MATERIAL_FRACTION:.0%} of the error beyond the noise or lower the chi2 by "
                            f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement (and move a Poisson's ratio at "
-                           f"least {NU_NEGLIGIBLE} from the model's), else none. Among those scoring at least "
-                           f"{NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still needed when "
+                           f"least {NU_NEGLIGIBLE} from the model's, or make a located inclusion at least "
+                           f"{INCLUSION_RATIO:g} times stiffer or softer than its tissue), else none. Among those "
+                           f"scoring at least {NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still needed when "
                            "the two best are fitted together, else the one whose pattern the misfit has most "
                            "closely."))
         b = QHBoxLayout()
