@@ -103,7 +103,7 @@ def new_region_name(existing) -> str:
 # it takes the place of (on average over its volume, see negligible) is no
 # finding. On data with nothing hidden the model's own error (its mesh against
 # the truth's finer one) fitted located spheres that changed their tissue by
-# factors of 1.06-1.43 (paper size and three other phantoms, 16 diagnoses; two
+# factors of 1.06-1.43 (paper size and three other phantoms, 14 diagnoses; two
 # more, far from material, 1.76 and 2.02), one of them (0.87 times B on a
 # 100 x 70 x 80 mm phantom) removing 88% of the error beyond the noise; a hidden
 # sphere 3.3 times stiffer than its tissue was fitted at 2.07-2.25 times (paper
