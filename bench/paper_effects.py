@@ -8,8 +8,9 @@ phantom (90 x 90 x 96 mm, inclusion A of 63 kPa in B of 18 kPa, pressed
 the scatterer simulator, noisy force) with one effect hidden in the truth, and
 ``elastoid diagnose DIR/CASE --json DIR/CASE.json`` diagnoses it with every
 candidate. The ``small-``, ``boxed-`` and ``wide-`` cases are other phantoms
-(sizes, region A, moduli, travel and frames of their own). An experiment folder already in DIR is reused (the neo-Hookean
-truth takes minutes to simulate). Prints a table: the verdict (and its rival
+(sizes, region A, moduli, travel and frames of their own). An experiment
+folder already in DIR is reused (the neo-Hookean truth takes minutes to
+simulate). Prints a table: the verdict (and its rival
 in a near tie), where the hidden effect ranked and scored, the moduli with it and with the baseline,
 how much the error beyond the noise falls with it in the effect's channel
 (for the inclusion, against the model on the inclusion's mesh), and the

@@ -976,12 +976,10 @@ def _tie_break(ranked, problem: EffectProblem, tracked, noise, max_evaluations, 
         else:
             effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {a.effect, b.effect})
             cp = _model_like(problem, effects, problem.moduli(a.parameters), cancel, base=problem, progress=say)
-            lik = Likelihood(cp, tracked, noise)
             # the better one's moduli and parameters, with the other's own parameters
-            res = _fit_polished(cp, lik, [cp.complete({**b.parameters, **a.parameters})], cancel, max_evaluations,
-                                say, "the joint fit")
-            joint = Candidate(f"{a.effect}+{b.effect}", effects, res.parameters, res.cost,
-                              _misfit(lik, res.parameters), a.n_parameters + b.n_parameters)
+            joint = _fitted(cp, f"{a.effect}+{b.effect}", {**b.parameters, **a.parameters},
+                            a.n_parameters + b.n_parameters, tracked, noise, max_evaluations, say, cancel,
+                            "the joint fit")
             cp.release(keep=problem)
             beside = {a.effect: b, b.effect: a}
     except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:
@@ -1016,43 +1014,49 @@ def _inclusion_joint(a: Candidate, b: Candidate, problem: EffectProblem, tracked
     inc, other = (a, b) if a.effect == "inclusion" else (b, a)
     cp, x = inc.problem, other.effect
     say(f"fitting {x} on the inclusion's mesh")
-    effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {x})
-    xp = _model_like(problem, effects, problem.moduli(other.parameters), cancel, mesh=_without_inclusion(problem, cp))
-    lik = Likelihood(xp, tracked, noise)
-    res = _fit_polished(xp, lik, [xp.complete(other.parameters)], cancel, max_evaluations, say, x)
-    alone = Candidate(x, effects, res.parameters, res.cost, _misfit(lik, res.parameters), other.n_parameters)
+    xp = _model_like(problem, check(set(problem.effects) | {x}), problem.moduli(other.parameters), cancel,
+                     mesh=_without_inclusion(problem, cp))
+    alone = _fitted(xp, x, other.parameters, other.n_parameters, tracked, noise, max_evaluations, say, cancel, x)
     say(f"{x} on the inclusion's mesh: chi2 {alone.misfit['chi2']:,.1f} ({other.misfit['chi2']:,.1f} on its own)")
     xp.release()
-    del xp, lik
-    effects = tuple(e for e in EFFECT_IDS if e in set(cp.effects) | {x})
-    jp = EffectProblem.from_experiment(cp.exp, effects=effects, mesh=cp.mesh, base=cp, frames=cp.frames,
-                                       roi_px=cp.roi, nu=cp.nu, cost=cp.cost_kind, inclusion=cp.inclusion,
-                                       near_kPa=cp.moduli(inc.parameters), progress=say, cancel=cancel)
-    lik = Likelihood(jp, tracked, noise)
+    del xp
+    jp = EffectProblem.from_experiment(cp.exp, effects=check(set(cp.effects) | {x}), mesh=cp.mesh, base=cp,
+                                       frames=cp.frames, roi_px=cp.roi, nu=cp.nu, cost=cp.cost_kind,
+                                       inclusion=cp.inclusion, near_kPa=cp.moduli(inc.parameters), progress=say,
+                                       cancel=cancel)
     # the inclusion's moduli and sphere, with the other's own parameters
-    res = _fit_polished(jp, lik, [jp.complete({**other.parameters, **inc.parameters})], cancel, max_evaluations,
-                        say, "the joint fit")
-    joint = Candidate(f"{a.effect}+{b.effect}", effects, res.parameters, res.cost, _misfit(lik, res.parameters),
-                      a.n_parameters + b.n_parameters, inclusion=inc.inclusion)
+    joint = _fitted(jp, f"{a.effect}+{b.effect}", {**other.parameters, **inc.parameters},
+                    a.n_parameters + b.n_parameters, tracked, noise, max_evaluations, say, cancel, "the joint fit")
+    joint.inclusion = inc.inclusion
     jp.release(keep=cp)
     return joint, {"inclusion": alone, x: inc}
 
 
+def _fitted(cp: EffectProblem, name: str, start: dict, n_parameters: int, tracked, noise, max_evaluations, say,
+            cancel, label: str) -> Candidate:
+    """``cp`` fitted by maximum likelihood from ``start`` (completed), as an unscored
+    candidate named ``name`` (its model is not kept)."""
+    lik = Likelihood(cp, tracked, noise)
+    res = _fit_polished(cp, lik, [cp.complete(start)], cancel, max_evaluations, say, label)
+    return Candidate(name, cp.effects, res.parameters, res.cost, _misfit(lik, res.parameters), n_parameters)
+
+
 def _replaced(problem: EffectProblem, inclusion: dict) -> dict:
-    """The moduli of the described regions a located sphere takes the place of,
-    with their shares of its volume (see inclusion.surroundings)."""
+    """The described regions a located sphere takes the place of, by name, with
+    their shares of its volume (see inclusion.surroundings)."""
     from app.core.effects.inclusion import surroundings
 
-    return {problem.moduli_names[i]: f for i, f in surroundings(inclusion, problem.exp.specimen).items()}
+    regions = problem.exp.specimen.regions
+    return {regions[i].name: f for i, f in surroundings(inclusion, problem.exp.specimen).items()}
 
 
 def _inclusion_negligible(inclusion: dict, params: dict, replaced: dict) -> str:
     """inclusion.negligible for a located sphere with fitted ``params``, against the
-    tissue it replaces (``replaced``, from _replaced)."""
+    tissue it replaces (``replaced``: region name -> share, from _replaced)."""
     from app.core.effects.inclusion import negligible
 
     return negligible(params[f"E_{inclusion['name']}_kPa"],
-                      [(n.removeprefix("E_").removesuffix("_kPa"), f, params[n]) for n, f in replaced.items()])
+                      [(n, f, params[f"E_{n}_kPa"]) for n, f in replaced.items()])
 
 
 def yields(c: Candidate, other: Candidate, joint: Candidate, lnN: float, nu_model: float,

@@ -403,7 +403,7 @@ def test_an_inclusion_that_vanishes_when_fitted_with_the_other_effect_yields():
     # the sphere takes the place of B and a little of A
     shares = surroundings(place, read_experiment(ROOT / "resources" / "demo").specimen)
     assert shares == {0: pytest.approx(0.937, abs=0.001), 1: pytest.approx(0.063, abs=0.001)}
-    replaced = {"E_B_kPa": shares[0], "E_A_kPa": shares[1]}
+    replaced = {"B": shares[0], "A": shares[1]}
     why_inc = yields(inc, alone, joint, lnN, 0.49, replaced)
     assert why_inc == ("with sliding-bottom, an inclusion that changes the stiffness of the tissue it replaces by a "
                        "factor 1.13 on average (17.2 kPa in place of B 17.9 kPa (94%), A 63.4 kPa (6%)) is no "

@@ -348,9 +348,9 @@ class ModelCheckPanel(Panel):
                            f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement (and move a Poisson's ratio at "
                            f"least {NU_NEGLIGIBLE} from the model's, or make a located inclusion at least "
                            f"{INCLUSION_RATIO:g} times stiffer or softer than its tissue), else none. Among those "
-                           f"scoring at least {NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still needed when "
-                           "the two best are fitted together, else the one whose pattern the misfit has most "
-                           "closely."))
+                           f"scoring at least {NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still "
+                           "needed when the two best are fitted together, else the one whose pattern the misfit has "
+                           "most closely."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
