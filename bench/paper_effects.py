@@ -75,6 +75,12 @@ CASES.update({
     "boxed-slip": (22, [*BOXED, "--effects", "probe-slip"], "probe-slip"),
     "wide-none": (31, WIDE, "none"),
     "wide-nu": (32, [*WIDE, "--nu", "0.4"], "compressibility"),
+    # the other effects on these phantoms (added blind, after the rules above were set)
+    "small-hyper": (14, [*SMALL, "--effects", "hyperelastic"], "hyperelastic"),
+    "boxed-visco": (23, [*BOXED, "--effects", "viscoelastic", "--hold-s", "6", "--g1", "0.3", "--tau1-s", "2"],
+                    "viscoelastic"),
+    # in view, 14 mm deep, beside A (centres 19 mm apart, radii 10 and 6), 3.75 times stiffer than B
+    "wide-incl": (33, [*WIDE, "--hidden", "sphere:34,35,66,6,30"], "inclusion"),
 })
 HOLD_FPS = {"visco-video": 5.0}  # cases whose hold is recorded at this rate
 

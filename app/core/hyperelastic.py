@@ -50,7 +50,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from app.core.errors import Cancelled, ElastoidError
-from app.core.fem import QUAD_BARY, QUAD_W, coefficients, lame, shape_gradients
+from app.core.fem import QUAD_BARY, QUAD_W, coefficients, element_positions, lame, shape_gradients
 from app.core.forward import MN_TO_N, FEModel
 from app.core.solver import SymmetricFactor, single_threaded_blas
 
@@ -380,7 +380,6 @@ class HyperelasticModel:
     # --- sparsity: element entries -> upper triangle of the free-free block -----
     def _setup_pattern(self):
         fe, op = self.fe, self.fe.op
-        n = self.n_dofs
         # position of every CSR entry of the free-free block in the full pattern
         ff_rows = np.repeat(np.arange(len(fe.free)), np.diff(fe._ff_pattern[1]))
         ff_cols = fe._ff_pattern[0]
@@ -390,15 +389,7 @@ class HyperelasticModel:
         n_ffu = int(upper.sum())
         full_to_ffu = np.full(len(op.indices), n_ffu, np.int64)  # n_ffu: not in the upper free-free block
         full_to_ffu[fe._pos_ff[upper]] = np.arange(n_ffu)
-        # CSR position of every element entry (e, a i, b k) in the full pattern: keys sorted row-major
-        rows_full = np.repeat(np.arange(n), np.diff(op.indptr))
-        csr_keys = rows_full.astype(np.int64) * n + op.indices
-        d = self.dofs
-        pos = np.empty((len(d), 30, 30), np.int32)
-        for a in range(30):  # row by row keeps the temporaries small
-            keys = d[:, a, None].astype(np.int64) * n + d
-            p = np.searchsorted(csr_keys, keys)
-            pos[:, a, :] = full_to_ffu[p]
+        pos = full_to_ffu[element_positions(op.indptr, op.indices, self.elems)].astype(np.int32)
         for g in self._groups:
             g.pos = pos[g.idx].ravel()
         self._n_ffu = n_ffu

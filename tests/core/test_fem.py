@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from app.core.fem import (assemble, coefficients, l2_error, lame, load_vector, p1_space, p2_space)
+from app.core.fem import (assemble, coefficients, element_positions, l2_error, lame, load_vector, p1_space,
+                          p2_space)
 from app.core.forward import Boundary, build_model
 from app.core.solver import spsolve
 from tests.core.helpers import cube_mesh
@@ -168,3 +169,24 @@ def test_assembly_matches_scikit_fem():
         e_sk = u_sk @ (Ksk @ u_sk)
         assert e_ours == pytest.approx(e_sk, rel=1e-9)
     assert sp.linalg.norm(Ksk) == pytest.approx(sp.linalg.norm(K), rel=1e-9)
+
+
+def test_element_entries_find_their_csr_positions_node_block_by_node_block():
+    fe = build_model(cube_mesh(2, size=(10.0, 10.0, 8.0), probe_rect=(2.5, 7.5, 2.5, 7.5)))
+    op, elems = fe.op, fe.space.elems
+    pos = element_positions(op.indptr, op.indices, elems)
+    # the plain search, dof pair by dof pair
+    n = fe.space.n_dofs
+    rows = np.repeat(np.arange(n), np.diff(op.indptr))
+    dofs = (3 * elems[:, :, None] + np.arange(3)).reshape(len(elems), -1)
+    keys = dofs[:, :, None].astype(np.int64) * n + dofs[:, None, :]
+    assert np.array_equal(pos, np.searchsorted(rows.astype(np.int64) * n + op.indices, keys))
+    assert np.array_equal(rows[pos], np.broadcast_to(dofs[:, :, None], pos.shape))
+    assert np.array_equal(op.indices[pos], np.broadcast_to(dofs[:, None, :], pos.shape))
+    # a node pair the pattern lacks is an error, not a wrong position
+    other = elems.copy()
+    neighbours = set(np.unique(elems[np.any(elems == elems[0, 0], axis=1)]))  # of node elems[0, 0]
+    far = [q for q in range(fe.space.n_nodes) if q not in neighbours]
+    other[0, 1] = far[0]
+    with pytest.raises(ValueError, match="not in the pattern"):
+        element_positions(op.indptr, op.indices, other)
