@@ -165,6 +165,7 @@ class ReducedModel:
         self._hr = np.zeros((Q, max_basis))
         self._push_residual_columns(self.b)
         self._prec = None
+        self._borrowed = False  # _prec is another reduced model's (see borrow_preconditioner)
         self.n_full_solves = 0
         self.n_back_solves = 0
         self._update_reduced()
@@ -213,14 +214,31 @@ class ReducedModel:
             self._prec = Factorized(self._matrix(theta))
             self.n_full_solves += 1
 
+    def borrow_preconditioner(self, other: "ReducedModel") -> bool:
+        """Enrich with ``other``'s factorized stiffness (a model on the same free
+        dofs) instead of factorizing one's own, until :meth:`release`, which drops
+        it without freeing it (``other`` owns it: release this model first). Any
+        fixed matrix close to the stiffness serves; the basis takes more vectors
+        the further it is. On the demo's mesh, a model trained near 18 and 63 kPa
+        with the factor of a homogeneous stiffness took 17 vectors instead of 9,
+        to the same residual tolerance, and 1.5-2.5 s instead of 7.8-9.2 s (its own
+        factorization). Returns whether it was borrowed."""
+        mine, theirs = self.model.free, other.model.free
+        if other._prec is None or self._prec is not None or len(mine) != len(theirs) or \
+                not np.array_equal(mine, theirs):
+            return False
+        self._prec, self._borrowed = other._prec, True
+        return True
+
     def release(self) -> None:
         """Free the preconditioner's factorization (on the demo's 52,173 free dofs
         about 0.3 GB, double precision) and the terms' matrices (50 MB each there);
         an enrichment rebuilds both (the matrices in about 0.05 s each, beside the
-        factorization's 0.5 s)."""
+        factorization's 0.5 s). A borrowed factorization is only dropped."""
         if self._prec is not None:
-            self._prec.free()
-            self._prec = None
+            if not self._borrowed:
+                self._prec.free()
+            self._prec, self._borrowed = None, False
         self._A = None
 
     def _add(self, v) -> bool:

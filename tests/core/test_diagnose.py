@@ -100,7 +100,7 @@ def test_the_inclusions_reference_is_the_current_model_on_the_inclusions_mesh(mo
                         classmethod(lambda cls, e, **kw: seen.update(exp=e, **kw)))
     current = SimpleNamespace(exp=exp, mesh=SimpleNamespace(region_names=("B", "A")), effects=(), frames=(0, 1, 2),
                               roi=None, nu=0.49, cost_kind="joint", inclusion=None)
-    dg.same_mesh_model(current, SimpleNamespace(mesh=mesh), near_kPa=[15.0, 45.0])
+    dg.same_mesh_model(current, SimpleNamespace(mesh=mesh, rm=None), near_kPa=[15.0, 45.0])
     m = seen["mesh"]
     assert seen["exp"] is exp and seen["near_kPa"] == [15.0, 45.0]
     assert m.region_names == ("B", "A") and m.points_mm is mesh.points_mm and m.tets is mesh.tets

@@ -101,13 +101,17 @@ class EffectProblem(Problem):
                         nu: float = 0.49, force_weight: float = 1.0, bins: int = 32, similarity: str = "smooth",
                         base: Problem | None = None,
                         inclusion: dict | None = None, progress: Callable[[str], None] | None = None,
-                        cancel: threading.Event | None = None, near_kPa=None, **_ignored) -> "EffectProblem":
+                        cancel: threading.Event | None = None, near_kPa=None,
+                        preconditioner: ReducedModel | None = None, **_ignored) -> "EffectProblem":
         """Mesh, assemble and train what the effects need. ``base``: a problem on the
         same mesh whose FE model and reduced model are reused when the effects
         leave them unchanged (viscoelastic, hyperelastic). ``near_kPa``: moduli the
         fits will start from (a diagnosis candidate's refit); a new reduced model
         is then trained on ratios within a factor 3 of theirs instead of the
-        whole range (it still enriches itself wherever a fit goes)."""
+        whole range (it still enriches itself wherever a fit goes).
+        ``preconditioner``: a reduced model on the same dofs whose factorization a
+        new reduced model borrows for its training
+        (:meth:`ReducedModel.borrow_preconditioner`; release this problem first)."""
         say = progress or (lambda s: None)
         effects = check(effects)
         if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
@@ -139,11 +143,12 @@ class EffectProblem(Problem):
             say("training the reduced model")
             with single_threaded_blas():
                 near = None if near_kPa is None or len(near_kPa) != n else near_kPa
+                rm = LameReducedModel(fe, n, nu) if free_nu else ReducedModel(fe, region_terms(n, nu))
+                if preconditioner is not None:
+                    rm.borrow_preconditioner(preconditioner)
                 if free_nu:
-                    rm = LameReducedModel(fe, n, nu)
                     rm.train_default(near_kPa=near)
                 else:
-                    rm = ReducedModel(fe, region_terms(n, nu))
                     rm.train(training_set(n) if near is None else local_training_set(near))
             say(f"reduced model: {rm.V.shape[1]} basis vectors")
         return cls(exp, mesh, fe, rm, effects=effects, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
