@@ -96,12 +96,19 @@ class Factorized:
             return _pardiso(self._s, 2, 33, self._U.data, self._ia, self._ja, b)
         return self._lu.solve(b)
 
+    @property
+    def alive(self) -> bool:
+        """Whether it can still solve (not freed)."""
+        return getattr(self, "_s" if HAVE_PARDISO else "_lu", None) is not None
+
     def free(self) -> None:
         """Release the factor now (MKL's memory is not released by garbage
         collection of the Python object alone: :meth:`__del__` calls this)."""
         if HAVE_PARDISO and getattr(self, "_s", None) is not None:
             s, self._s = self._s, None
             s.free_memory(everything=True)
+        elif not HAVE_PARDISO:
+            self._lu = None
 
     def __del__(self):
         try:

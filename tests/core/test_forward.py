@@ -71,6 +71,48 @@ def test_a_released_model_evaluates_the_same_and_refactorizes_to_enrich(model):
         assert np.array_equal(A.data, B.data)
 
 
+def test_a_model_trains_with_another_models_factorization_and_leaves_it_to_its_owner(model):
+    """The inclusion's reference trains with the inclusion model's factorization
+    (the same dofs, another stiffness): no factorization of its own, a few more
+    basis vectors, as exact; its release leaves the factorization to its owner,
+    and once the owner frees it, an enrichment factorizes the borrower's own. A
+    model on other dofs (another boundary) does not borrow."""
+    owner = ReducedModel(model, region_terms(2, 0.49))
+    owner.train(training_set(2))  # factorized at the training set's mean: about equal moduli
+    alone = ReducedModel(model, region_terms(2, 0.49))
+    alone.train(local_training_set([18.0, 63.0]))
+    borrower = ReducedModel(model, region_terms(2, 0.49))
+    assert borrower.borrow_preconditioner(owner)
+    borrower.train(local_training_set([18.0, 63.0]))
+    assert borrower.n_full_solves == 0 and borrower.k >= alone.k
+    for E in ([18.0, 63.0], [25.0, 60.0]):
+        u_full, F_full = model.solve(E)
+        a = borrower.coords(E)
+        assert np.linalg.norm(borrower.full_field(a) - u_full) / np.linalg.norm(u_full) < 1e-6
+        assert borrower.force_N_per_mm(E, a) == pytest.approx(F_full, rel=1e-7)
+    borrower.release()
+    assert borrower._prec is None and owner._prec.alive
+    theta0 = np.exp(np.log(training_set(2)).mean(axis=0))
+    b = owner._rhs(theta0)
+    assert np.linalg.norm(owner._matrix(theta0) @ owner._prec.solve(b) - b) < 1e-9 * np.linalg.norm(b)
+    # borrowed again, then the owner frees it first: the borrower factorizes its own to enrich
+    assert borrower.borrow_preconditioner(owner)
+    owner.release()
+    assert not borrower._prec.alive
+    k0 = borrower.k
+    u_full, _ = model.solve([1.0, 200.0])
+    a = borrower.coords([1.0, 200.0])
+    assert np.linalg.norm(borrower.full_field(a) - u_full) / np.linalg.norm(u_full) < 1e-6
+    assert borrower.k > k0 and borrower.n_full_solves == 1
+    borrower.release()
+    other = ReducedModel(build_model(model.space.mesh, Boundary("sliding", "bonded"), op=model.op),
+                         region_terms(2, 0.49))
+    keeper = ReducedModel(model, region_terms(2, 0.49))
+    keeper.train(local_training_set([18.0, 63.0]))
+    assert not other.borrow_preconditioner(keeper)
+    keeper.release()
+
+
 def test_displacement_control_depends_only_on_moduli_ratios(model):
     u1, F1 = model.solve([18.0, 63.0])
     u2, F2 = model.solve([36.0, 126.0])

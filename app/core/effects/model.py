@@ -111,7 +111,7 @@ class EffectProblem(Problem):
         whole range (it still enriches itself wherever a fit goes).
         ``preconditioner``: a reduced model on the same dofs whose factorization a
         new reduced model borrows for its training
-        (:meth:`ReducedModel.borrow_preconditioner`; release this problem first)."""
+        (:meth:`ReducedModel.borrow_preconditioner`)."""
         say = progress or (lambda s: None)
         effects = check(effects)
         if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
