@@ -219,16 +219,14 @@ class ReducedModel:
     def borrow_preconditioner(self, other: "ReducedModel") -> bool:
         """Enrich with ``other``'s factorized stiffness (a model on the same free
         dofs) instead of factorizing one's own, until :meth:`release`, which drops
-        it without freeing it (``other`` owns it). Any
-        fixed matrix close to the stiffness serves; the basis takes more vectors
-        the further it is. On the demo's mesh, a model trained near 18 and 63 kPa
+        it without freeing it (``other`` owns it). Any fixed matrix close to the
+        stiffness serves; the basis takes more vectors the further it is. On the demo's mesh, a model trained near 18 and 63 kPa
         with the factor of a homogeneous stiffness took 17 vectors instead of 9,
         to the same residual tolerance, and 1.5-2.5 s instead of 7.8-9.2 s (its own
         factorization). Should the owner free it first, the next enrichment
         factorizes this model's own. Returns whether it was borrowed."""
-        mine, theirs = self.model.free, other.model.free
-        if other._prec is None or not other._prec.alive or self._prec is not None or len(mine) != len(theirs) or \
-                not np.array_equal(mine, theirs):
+        if other._prec is None or not other._prec.alive or self._prec is not None or \
+                not np.array_equal(self.model.free, other.model.free):
             return False
         self._prec, self._borrowed = other._prec, True
         return True
