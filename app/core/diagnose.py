@@ -866,6 +866,10 @@ class _InclusionPrep:
         say(f"inclusion located at {np.round(self.guess.center_mm, 1).tolist()} mm, "
             f"radius {self.guess.radius_mm:.1f} mm; building its model in the background")
         self.inclusion = {"name": self.guess.name, **self.guess.as_parameters()}
+        # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
+        host = problem.moduli_names[int(paint_labels(np.array([self.guess.center_mm]), problem.exp.specimen.regions)[0])]
+        self.start_kPa = base.parameters[host] * (2.0 if self.guess.stiffer else 0.5)
+        near = (*problem.moduli(base.parameters), self.start_kPa)
 
         effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {"inclusion"})
 
@@ -876,7 +880,7 @@ class _InclusionPrep:
                 # factorizations alive at once had made the building's peak on the demo 3.8 GB
                 # instead of 3.1 GB, with a 6 mm sphere)
                 self.problem = current_model(problem.exp, effects, mesh_settings=mesh_settings,
-                                             inclusion=self.inclusion, cancel=cancel, nu=problem.nu)
+                                             inclusion=self.inclusion, cancel=cancel, nu=problem.nu, near_kPa=near)
                 try:
                     self.reference = same_mesh_model(problem, self.problem, problem.moduli(base.parameters),
                                                      cancel)
@@ -1104,11 +1108,7 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
             prep = _InclusionPrep(problem, base, tracked, noise, lik0, mesh_settings, say, cancel)
         say("waiting for the model with the inclusion")
         guess, inclusion, cp, same_mesh = prep.result()
-        bg = base.parameters[problem.moduli_names[0]]
-        # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
-
-        host = problem.moduli_names[int(paint_labels(np.array([guess.center_mm]), problem.exp.specimen.regions)[0])]
-        start[f"E_{guess.name}_kPa"] = base.parameters.get(host, bg) * (2.0 if guess.stiffer else 0.5)
+        start[f"E_{guess.name}_kPa"] = prep.start_kPa
     else:
         cp = _model_like(problem, effects, problem.moduli(start), cancel, base=problem, progress=say)
     if "hyperelastic" in problem.effects and cp._hyper is None:

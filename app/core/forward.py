@@ -131,6 +131,17 @@ def build_model(mesh: TetMesh, boundary: Boundary = Boundary(), op: AffineOperat
 # ---------------------------------------------------------------------------
 
 
+def _own_entries(A: sp.csr_matrix) -> sp.csr_matrix:
+    """``A`` without the zeros it holds in the shared pattern of every term: a
+    region's term is zero outside the region's elements. Its products are then
+    the same to the bit (only added zeros are dropped) over fewer entries: on the
+    demo's mesh the tumour's term keeps 387,513 of 4,163,949, and each basis vector
+    of a diagnosis' model costs one product per term."""
+    A = sp.csr_matrix((A.data, A.indices.copy(), A.indptr.copy()), shape=A.shape)  # the pattern is shared
+    A.eliminate_zeros()
+    return A
+
+
 class ReducedModel:
     """Galerkin reduced model over affine terms K_q (one per region, or per region
     and Lame kind when Poisson's ratio is free).
@@ -148,7 +159,7 @@ class ReducedModel:
         self.tol = tol
         self.max_basis = max_basis
         blocks = [model.term_blocks(t) for t in terms]
-        self._A = [b[0] for b in blocks]
+        self._A = [_own_entries(b[0]) for b in blocks]
         self.b = np.array([b[1] for b in blocks])  # (Q, n): one right-hand side per term
         self.h = np.array([b[2] for b in blocks])
         self.c = np.array([b[3] for b in blocks])
@@ -177,9 +188,10 @@ class ReducedModel:
     @property
     def A(self) -> list:
         """The terms' free-free matrices A_q, which only an enrichment needs: freed by
-        :meth:`release` and rebuilt (identically) from the FE model when asked for."""
+        :meth:`release` and rebuilt (identically) from the FE model when asked for.
+        Each holds only its own entries (see _own_entries)."""
         if self._A is None:
-            self._A = [self.model.term_matrix(t) for t in self.terms]
+            self._A = [_own_entries(self.model.term_matrix(t)) for t in self.terms]
         return self._A
 
     # --- offline ------------------------------------------------------------
@@ -372,12 +384,25 @@ def region_terms(n_regions: int, nu: float) -> list[dict]:
     return out
 
 
-def local_training_set(moduli_kPa, factor: float = 3.0, n: int = 12, seed: int = 0) -> np.ndarray:
+def local_training_set(moduli_kPa, factor: float = 3.0, n: int | None = None, seed: int = 0) -> np.ndarray:
     """Moduli (kPa) whose ratios to the first region lie within ``factor`` of those
     of ``moduli_kPa``: the training set of a refit that starts at a known optimum
     (a diagnosis candidate). Evaluations beyond it still enrich the basis (the
-    residual is checked at every one), so this only saves training time."""
+    residual is checked at every one), so this only saves training time.
+
+    ``n``: points on the line of two regions' ratio (12 unless given), or random
+    points in the box of more (96 unless given, beside the box's corners). A box
+    needs them: the basis grows where the residual is worst among the points, and
+    between too few of them it stays above the tolerance, so that a fit there
+    enriches the basis again, with a factorization if the model's was released.
+    On the demo's model with a located sphere (three regions, 72,288 free dofs),
+    12 random points gave 45 basis vectors, and 42% of 300 other random points in
+    the box had a residual above the tolerance (at most 2.5 times it); 96 gave 45
+    vectors too, and none (training 9.5 s against 7.8 s, the factorization
+    included)."""
     E = np.asarray(moduli_kPa, float)
+    if n is None:
+        n = 12 if len(E) <= 2 else 96
     return training_set(len(E), (1.0 / factor, factor), n, seed) * np.concatenate([[1.0], E[1:] / E[0]])
 
 

@@ -48,6 +48,47 @@ def test_a_model_trained_near_an_optimum_is_smaller_and_still_exact_far_from_it(
     assert local.k > k0  # it grew where it had to
 
 
+def test_a_model_trained_near_three_moduli_stays_within_tolerance_between_its_training_points():
+    """With three regions the local training set is a box of two ratios. The basis
+    grows where the residual is worst among its points, so between too few of
+    them it stays above the tolerance, and a fit there enriches the basis again
+    (with a factorization, if the model's was released). On this mesh, 12 random
+    points left 28% of other points in the box above the tolerance (up to 5.3
+    times it); the default 96, 2% (up to 1.3 times)."""
+    regions = (Region("B", "background"), Region("A", "sphere", center_mm=(20.0, 20.0, 18.0), radius_mm=6.0),
+               Region("C", "sphere", center_mm=(20.0, 12.0, 10.0), radius_mm=4.0))
+    mesh = build_mesh((40.0, 40.0, 30.0), (10.0, 30.0, 16.0, 24.0), regions,
+                      MeshSettings(edge_mm=8.0, probe_edge_mm=3.0))
+    near = np.array([18.0, 63.0, 9.0])
+    rm = ReducedModel(build_model(mesh), region_terms(3, 0.49))
+    rm.train(local_training_set(near))
+    rng = np.random.default_rng(1)
+    box = near[1:] / near[0] * np.exp(rng.uniform(-np.log(3.0), np.log(3.0), (200, 2)))
+    rel = np.array([rm.residual([1.0, *r])[1] for r in box])
+    assert np.mean(rel > rm.tol) <= 0.05 and rel.max() < 2.0 * rm.tol
+
+
+def test_each_term_keeps_only_its_own_entries_and_multiplies_to_the_bit(model):
+    """A region's stiffness is zero outside the region's elements: each term of a
+    reduced model holds only its own entries, so an enrichment's products go over
+    fewer of them, with the same results to the bit (only added zeros are dropped);
+    the FE model's pattern, which every term shares there, is left as it was."""
+    indices, indptr = (a.copy() for a in model._ff_pattern)
+    rm = ReducedModel(model, region_terms(2, 0.49))
+    full = [model.term_matrix(t) for t in rm.terms]
+    assert all(own.nnz < whole.nnz for own, whole in zip(rm.A, full))
+    assert rm.A[1].nnz < 0.5 * full[1].nnz  # the sphere's term: a small part of the block
+    v = np.random.default_rng(0).standard_normal(len(model.free))
+    for own, whole in zip(rm.A, full):
+        assert np.array_equal(own @ v, whole @ v)
+        assert np.all(own.data != 0)
+    assert np.array_equal(model._ff_pattern[0], indices) and np.array_equal(model._ff_pattern[1], indptr)
+    theta = [18.0, 63.0]
+    assert abs(rm._matrix(theta) - (18.0 * full[0] + 63.0 * full[1])).max() == 0.0
+    rm.release()
+    assert [A.nnz for A in rm.A] == [A.nnz for A in ReducedModel(model, region_terms(2, 0.49)).A]
+
+
 def test_a_released_model_evaluates_the_same_and_refactorizes_to_enrich(model):
     """A diagnosis frees each candidate's factorization once it is scored: the
     model still evaluates exactly as before, and an evaluation beyond its basis
