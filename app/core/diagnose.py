@@ -845,6 +845,11 @@ def locate_inclusion(exp, effects=(), *, mesh_settings=None, max_evaluations: in
     return {"name": guess.name, **guess.as_parameters()}
 
 
+def _host(problem: EffectProblem, center_mm) -> str:
+    """The modulus name of the described region a located sphere's centre lies in."""
+    return problem.moduli_names[int(paint_labels(np.array([center_mm]), problem.exp.specimen.regions)[0])]
+
+
 class _InclusionPrep:
     """The inclusion candidate's first half, started as soon as the current model
     is fitted: the scan that locates the sphere, then the model with the sphere as
@@ -867,8 +872,7 @@ class _InclusionPrep:
             f"radius {self.guess.radius_mm:.1f} mm; building its model in the background")
         self.inclusion = {"name": self.guess.name, **self.guess.as_parameters()}
         # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
-        host = problem.moduli_names[int(paint_labels(np.array([self.guess.center_mm]), problem.exp.specimen.regions)[0])]
-        self.start_kPa = base.parameters[host] * (2.0 if self.guess.stiffer else 0.5)
+        self.start_kPa = base.parameters[_host(problem, self.guess.center_mm)] * (2.0 if self.guess.stiffer else 0.5)
         near = (*problem.moduli(base.parameters), self.start_kPa)
 
         effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {"inclusion"})
@@ -1224,8 +1228,7 @@ def _evidence(eff, problem, base: Candidate, cand: Candidate, tracked, lik0, lik
         inc = cand.inclusion
         g = InclusionGuess(inc["name"], tuple(inc["center_mm"]), inc["radius_mm"], True, 0.0)
         depth = P.exp.specimen.size_mm[2] - inc["center_mm"][2]
-        host = P.moduli_names[int(paint_labels(np.array([inc["center_mm"]]), P.exp.specimen.regions)[0])]
-        ratio = cand.parameters[f"E_{inc['name']}_kPa"] / cand.parameters[host]
+        ratio = cand.parameters[f"E_{inc['name']}_kPa"] / cand.parameters[_host(P, inc["center_mm"])]
         return evidence(g, depth, ratio, before, after)
     return ""
 

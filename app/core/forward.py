@@ -232,7 +232,8 @@ class ReducedModel:
         """Enrich with ``other``'s factorized stiffness (a model on the same free
         dofs) instead of factorizing one's own, until :meth:`release`, which drops
         it without freeing it (``other`` owns it). Any fixed matrix close to the
-        stiffness serves; the basis takes more vectors the further it is. On the demo's mesh, a model trained near 18 and 63 kPa
+        stiffness serves; the basis takes more vectors the further it is. On the
+        demo's mesh, a model trained near 18 and 63 kPa
         with the factor of a homogeneous stiffness took 17 vectors instead of 9,
         to the same residual tolerance, and 1.5-2.5 s instead of 7.8-9.2 s (its own
         factorization). Should the owner free it first, the next enrichment
