@@ -49,6 +49,7 @@ from typing import Callable
 
 import numpy as np
 
+from app.core import memory
 from app.core.compare import Comparison, TrackedField, compare, track
 from app.core.compare import gather as _gather
 from app.core.compare import neighbour_median
@@ -850,17 +851,29 @@ def _host(problem: EffectProblem, center_mm) -> str:
     return problem.moduli_names[int(paint_labels(np.array([center_mm]), problem.exp.specimen.regions)[0])]
 
 
+# how much more memory than it holds a diagnosis takes with the inclusion's model
+# built beside the other candidates (see _InclusionPrep)
+BESIDE_FACTOR = 3.0
+
+
 class _InclusionPrep:
     """The inclusion candidate's first half, started as soon as the current model
     is fitted: the scan that locates the sphere, then the model with the sphere as
     a region (its mesh, FE model and reduced model), built in a background thread
     while the other candidates are tried (the mesher runs in a child process;
     the sparse solves and BLAS release the GIL). On the demo this part took
-    about 45 s of the diagnosis' 136 s, nearly all of it now hidden."""
+    about 45 s of the diagnosis' 136 s, nearly all of it now hidden.
+
+    Built beside the others, a diagnosis peaked at about four times the memory
+    it held here (the demo 1.0 -> 4.1 GB; the boxed phantom's finer mesh 2.1 ->
+    8.3 GB). When the memory left cannot hold three times as much again
+    (:func:`app.core.memory.can_hold`), the model is built when its turn comes,
+    after the other candidates have released theirs."""
 
     def __init__(self, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, say, cancel):
         self.problem, self.error, self._thread, self.inclusion = None, None, None, None
         self.reference = None  # the current model on the inclusion's mesh (same_mesh_model)
+        self.deferred = ""  # why the model is built in turn rather than in the background
         say("scanning the image plane for an undescribed inclusion")
         try:
             self.guess = _scan(problem, base.parameters, tracked, noise, lik0, cancel)
@@ -868,8 +881,6 @@ class _InclusionPrep:
             self.guess, self.error = None, exc
         if self.guess is None:
             return
-        say(f"inclusion located at {np.round(self.guess.center_mm, 1).tolist()} mm, "
-            f"radius {self.guess.radius_mm:.1f} mm; building its model in the background")
         self.inclusion = {"name": self.guess.name, **self.guess.as_parameters()}
         # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
         self.start_kPa = base.parameters[_host(problem, self.guess.center_mm)] * (2.0 if self.guess.stiffer else 0.5)
@@ -877,14 +888,17 @@ class _InclusionPrep:
 
         effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {"inclusion"})
 
-        def work():
+        def work(progress=None):
             try:
+                if progress is not None:  # built in turn, short of memory: the current model's
+                    problem.rm.release()  # factorization goes too (refactorized if it is needed again)
                 # one factorization alive at a time, freed once both models are built (both idle
                 # until the others are tried): the reference trains with the candidate's (two
                 # factorizations alive at once had made the building's peak on the demo 3.8 GB
                 # instead of 3.1 GB, with a 6 mm sphere)
                 self.problem = current_model(problem.exp, effects, mesh_settings=mesh_settings,
-                                             inclusion=self.inclusion, cancel=cancel, nu=problem.nu, near_kPa=near)
+                                             inclusion=self.inclusion, cancel=cancel, nu=problem.nu, near_kPa=near,
+                                             progress=progress)
                 try:
                     self.reference = same_mesh_model(problem, self.problem, problem.moduli(base.parameters),
                                                      cancel)
@@ -895,7 +909,18 @@ class _InclusionPrep:
                 self.error = exc
 
         self._thread = threading.Thread(target=work, name="inclusion-mesh", daemon=True)
-        self._thread.start()
+        self._work, self._say = work, say
+        located = (f"inclusion located at {np.round(self.guess.center_mm, 1).tolist()} mm, "
+                   f"radius {self.guess.radius_mm:.1f} mm")
+        held = memory.resident_bytes()
+        if held is None or memory.can_hold(BESIDE_FACTOR * held):
+            say(f"{located}; building its model in the background")
+            self._thread.start()
+        else:
+            self.deferred = (f"memory is short ({memory.describe(memory.available_bytes())} left, "
+                             f"{memory.describe(BESIDE_FACTOR * held + memory.RESERVE_BYTES)} wanted): its model "
+                             "is built after the other candidates")
+            say(f"{located}; {self.deferred}")
 
     def result(self):
         """(guess, inclusion dict, the model with the inclusion, the current model on
@@ -904,7 +929,12 @@ class _InclusionPrep:
             raise self.error
         if self.guess is None:
             raise ElastoidError("no localized misfit to place an inclusion at")
-        self._thread.join()
+        if self.deferred:  # not started: built now, in this thread (once)
+            work, self._work = self._work, None
+            if work is not None:
+                work(self._say)
+        else:
+            self._thread.join()
         if self.error is not None:
             raise self.error
         return self.guess, self.inclusion, self.problem, self.reference

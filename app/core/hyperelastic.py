@@ -52,6 +52,7 @@ import scipy.sparse as sp
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import QUAD_BARY, QUAD_W, coefficients, element_positions, lame, shape_gradients
 from app.core.forward import MN_TO_N, FEModel
+from app.core import memory
 from app.core.solver import SymmetricFactor, single_threaded_blas
 
 
@@ -322,7 +323,13 @@ class HyperelasticModel:
     when three iterations reduce the residual by less than this cubed.
     ``warm_starts``: keep the equilibrium and a factorized tangent at every
     requested travel (one factor each); off for a single solve (the simulator's
-    truth), which then holds one working factor besides the linear one.
+    truth), which then holds one working factor besides the linear one. A
+    travel's own factor is kept only while the memory left can hold another
+    (:func:`app.core.memory.can_hold`); otherwise the travel keeps its
+    equilibrium alone, and a warm start from it iterates with the nearest kept
+    factor (:attr:`n_lean` counts those travels). On the boxed phantom's finer
+    mesh each factor holds about 0.5 GB, and the seven of a diagnosis' walk had
+    taken it to 8.3 GB.
     """
 
     def __init__(self, fe: FEModel, tol: float = 1e-6, max_iterations: int = 60, anderson_depth: int = 5,
@@ -354,6 +361,8 @@ class HyperelasticModel:
         self._cache: dict[float, _Preconditioner] = {}
         self._scratch: _Preconditioner | None = None  # a spare factor for trial tangents
         self._equilibria: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # travel -> (ratios, u)
+        self._lean: set = set()  # travels whose equilibrium is kept without a factor (memory short)
+        self.n_lean = 0  # how many times a travel's factor was not kept for lack of memory
         self.n_factorizations = 0
         self.n_back_solves = 0
         self.n_residuals = 0
@@ -444,11 +453,23 @@ class HyperelasticModel:
         self._ordering = f.ordering
         return f
 
+    def _may_keep_factor(self, d: float) -> bool:
+        """Whether travel ``d`` may keep a factor of its own: the memory left can
+        hold one more (the size of a live one), else it is noted (:attr:`n_lean`)."""
+        live = next((p.factor for p in (*self._cache.values(), self._walk and self._walk[1], self._scratch) if p),
+                    None)
+        if live is None or memory.can_hold(live.memory_bytes):
+            return True
+        self.n_lean += 1
+        self.trace.append((d, "memory short: no factor of its own kept"))
+        return False
+
     def free(self) -> None:
         for p in self._cache.values():
             p.factor.free()
         self._cache.clear()
         self._equilibria.clear()
+        self._lean.clear()
         if self._walk is not None:
             self._walk[1].factor.free()
             self._walk = None
@@ -525,11 +546,15 @@ class HyperelasticModel:
         factorized at the equilibrium. ``n_kept``: iterations done with the
         travel's last factor."""
         self._equilibria[d] = (ratios.copy(), u.copy())
+        self._lean.discard(d)
         own = self._cache.get(d)
         if own is not None and n_kept <= KEEP_ITERATIONS:
             own.at_equilibrium = True
             return
         if own is None:
+            if not self._may_keep_factor(d):  # the equilibrium alone: a warm start uses a neighbour's factor
+                self._lean.add(d)
+                return
             own, self._scratch = self._scratch, None
         own = self._definite_into(own, self.tangent_upper(u, mu_e, lam_e) / theta[0], ratios, True)
         if own.factor.positive_definite is False:  # not a stable equilibrium: no warm start from it
@@ -555,11 +580,16 @@ class HyperelasticModel:
         p.ratios, p.scale, p.at_equilibrium = ratios, 1.0, at_equilibrium
         return p
 
-    def _warm_start(self, d: float, ratios: np.ndarray) -> tuple[np.ndarray, _Preconditioner] | None:
-        """The equilibrium and tangent kept at travel ``d`` for nearby ratios, if any."""
+    def _warm_start(self, d: float, ratios: np.ndarray) -> tuple[np.ndarray, _Preconditioner | None] | None:
+        """The equilibrium and tangent kept at travel ``d`` for nearby ratios, if any
+        (the tangent None when memory was short and the equilibrium was kept alone)."""
         kept, pre = self._equilibria.get(d), self._cache.get(d)
-        if kept is not None and pre is not None and pre.at_equilibrium and _near(ratios, kept[0]):
+        if kept is None or not _near(ratios, kept[0]):
+            return None
+        if pre is not None and pre.at_equilibrium:
             return kept[1], pre
+        if pre is None and d in self._lean:
+            return kept[1], None
         return None
 
     def _step(self, d, done_d, prev, theta, ratios, nu, mu_e, lam_e, cancel):
@@ -570,6 +600,8 @@ class HyperelasticModel:
         warm = self._warm_start(d, ratios)
         if warm is not None:
             u, pre = warm[0].copy(), warm[1]
+            if pre is None:  # kept without its own factor: the nearest one, else the linear stiffness
+                pre = self._nearest(d, ratios) or self._linear_preconditioner(theta, nu)
             u[fixed] = d * fe.lift
             try:
                 return self._equilibrate(u, d, theta, ratios, mu_e, lam_e, pre, cancel, nu)
@@ -670,7 +702,7 @@ class HyperelasticModel:
                 else:
                     # a requested travel keeps its own factor (for later warm starts); the
                     # walk's intermediate steps share one
-                    if d in self._requested:
+                    if d in self._requested and (d in self._cache or self._may_keep_factor(d)):
                         old, self._cache[d] = self._cache.get(d), new
                     else:
                         old, self._walk = (self._walk[1] if self._walk else None), (d, new)

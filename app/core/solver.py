@@ -284,6 +284,19 @@ class SymmetricFactor:
             return None
         return self._definite if self.mtype == 2 else self._negative == 0
 
+    @property
+    def memory_bytes(self) -> float:
+        """The memory one numeric factor of this pattern holds (PARDISO's own
+        figure for the factor, iparm[16]; on the demo's tangent 0.154 GB, where
+        each new factor sharing the analysis added 0.14-0.23 GB of resident
+        memory). The fallback's: its L and U entries."""
+        if self._fallback is not None:
+            lu = getattr(self._fallback, "_lu", None)
+            return 0.0 if lu is None else float(12 * (lu.L.nnz + lu.U.nnz))
+        if self._handle is None:
+            return 0.0
+        return 1024.0 * float(self._handle.s.iparm[16])
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         if self._fallback is not None:
             return self._fallback.solve(b)

@@ -97,6 +97,49 @@ def test_a_warm_solve_reuses_the_kept_equilibria_and_agrees_with_a_cold_one():
     cold.free()
 
 
+def _live_factors(hm: HyperelasticModel) -> int:
+    held = [p.factor for p in (*hm._cache.values(), hm._walk and hm._walk[1], hm._scratch) if p]
+    return len({id(f) for f in held if f._handle is not None or f._fallback is not None})
+
+
+def test_short_of_memory_the_travels_keep_equilibria_without_factors_and_the_answers_do_not_change(monkeypatch):
+    """With no memory to spare (ELASTOID_MEMORY_GB below what the process holds)
+    no requested travel keeps a factor of its own: the linear one, the walk's and
+    the spare are all that live, where plenty of memory keeps one per travel too.
+    The equilibria are the same, and a warm solve from the kept equilibria
+    (iterating with a neighbour's factor) agrees with a cold one."""
+    mesh = cube_mesh(3, size=(10.0, 10.0, 8.0), probe_rect=(2.5, 7.5, 2.5, 7.5),
+                     labels=lambda c: (c[:, 2] > 4).astype(np.int32))
+    fe = build_model(mesh)
+    depths = [0.4, 0.8, 1.2]
+    roomy = HyperelasticModel(fe)
+    s_roomy = roomy.solve([10.0, 25.0], 0.45, depths)
+    assert roomy.n_lean == 0 and all(d in roomy._cache for d in depths)
+
+    monkeypatch.setenv("ELASTOID_MEMORY_GB", "0.001")
+    lean = HyperelasticModel(fe)
+    s_lean = lean.solve([10.0, 25.0], 0.45, depths)
+    assert lean.n_lean > 0
+    assert not any(d in lean._cache for d in depths), sorted(lean._cache)
+    assert _live_factors(lean) <= 3 < _live_factors(roomy)
+    assert s_lean.force_N == pytest.approx(s_roomy.force_N, rel=1e-5)
+    assert np.abs(s_lean.fields - s_roomy.fields).max() < 1e-5 * np.abs(s_roomy.fields).max()
+
+    E = [10.5, 24.0]
+    trace_from = len(lean.trace)
+    s_warm = lean.solve(E, 0.45, depths)
+    # each travel started from its kept equilibrium (one load step each), not from the walk
+    stepped = sorted({d for d, *_ in lean.trace[trace_from:]})
+    assert stepped == depths, stepped
+    cold = HyperelasticModel(fe)
+    monkeypatch.delenv("ELASTOID_MEMORY_GB")
+    s_cold = cold.solve(E, 0.45, depths)
+    assert s_warm.force_N == pytest.approx(s_cold.force_N, rel=1e-5)
+    assert np.abs(s_warm.fields - s_cold.fields).max() < 1e-5 * np.abs(s_cold.fields).max()
+    for hm in (roomy, lean, cold):
+        hm.free()
+
+
 def test_a_load_path_the_solver_cannot_follow_stops_with_a_clear_message():
     """Pressed to 90% of its height under a bonded probe, the elements beside the
     probe's edges invert: the solve gives up with the travel it reached instead
