@@ -294,6 +294,9 @@ def cmd_diagnose(args) -> int:
         print(f"elastoid: --candidates: {', '.join(dropped)} already in the current model, not tried",
               file=sys.stderr)
     _check_json_dest(args.json)
+    from app.core.memory import limit_bytes
+
+    limit_bytes()  # a malformed ELASTOID_MEMORY_GB is refused now, not after the first candidates
     exp = read_experiment(args.experiment)
     _say_thinned(exp, None, args.quiet)
     bar = TerminalProgress(not args.quiet, 1)

@@ -156,6 +156,21 @@ def test_diagnose_says_when_its_candidates_are_already_in_the_model(capsys, monk
     assert "viscoelastic already in the current model, not tried" in capsys.readouterr().err
 
 
+def test_diagnose_refuses_a_malformed_memory_cap_before_the_run(capsys, monkeypatch):
+    """ELASTOID_MEMORY_GB is read only when memory gets short, minutes into a
+    diagnosis: a value that is not a number is refused before anything runs."""
+    import app.core.diagnose
+
+    def must_not_run(*a, **k):
+        raise AssertionError("the run started")
+
+    monkeypatch.setattr(app.core.diagnose, "diagnose", must_not_run)
+    monkeypatch.setenv("ELASTOID_MEMORY_GB", "8GB")
+    assert main(["diagnose", str(ROOT / "resources" / "demo"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "ELASTOID_MEMORY_GB must be a positive number of gigabytes, not '8GB'" in err and "Traceback" not in err
+
+
 def test_identify_with_the_inclusion_effect_locates_meshes_and_fits_it(tmp_path_factory, monkeypatch, capsys):
     """`identify --effects inclusion` used to fit the model without any inclusion
     and call it one. Now the inclusion is located from the misfit as a diagnosis

@@ -952,6 +952,7 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     """
     say = progress or (lambda s: None)
     t0 = time.perf_counter()
+    memory.limit_bytes()  # a malformed ELASTOID_MEMORY_GB: refused before the work, not midway
     effects = check(effects)
     if candidates is None:
         candidates = tuple(e for e in EFFECT_IDS if e not in effects)
