@@ -544,6 +544,7 @@ class Diagnosis:
     comparison: Comparison | None = field(default=None, repr=False)
     tracked: TrackedField | None = field(default=None, repr=False)
     tie_break: TieBreak | None = None  # two of a near tie fitted together, if they were
+    memory_note: str = ""  # what was built in turn or not kept because memory was short ("" when nothing)
 
     def candidate(self, effect: str) -> Candidate:
         return next(c for c in self.candidates if c.effect == effect)
@@ -682,6 +683,8 @@ class Diagnosis:
             out.append(f"why: {self.none_text()}")
         if self.rival:
             out.append(f"near tie: {self.tie_advice()}")
+        if self.memory_note:
+            out.append(f"memory: {self.memory_note}")
         return out
 
 
@@ -975,7 +978,7 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     # hyperelastic one (its factorizations use both cores), then the inclusion
     slow = ("hyperelastic", "inclusion")
     candidates = tuple(c for c in candidates if c not in slow) + tuple(c for c in slow if c in candidates)
-    out = []
+    out, n_lean = [], 0
     for eff in candidates:
         if cancel is not None and cancel.is_set():
             raise Cancelled("diagnosis cancelled")
@@ -998,13 +1001,28 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
             if note:
                 cand.evidence = f"{cand.evidence}; {note}"
         if cand.problem is not None:  # kept for an add; its factorizations are rebuilt if it needs them
+            hm = cand.problem._hyper_model
+            n_lean += hm.n_lean if hm is not None else 0
             cand.problem.release(keep=problem)
         out.append(cand)
     out.sort(key=lambda c: -c.score)
     tie_break = _tie_break(out, problem, tracked, noise, max_evaluations, say, cancel)
     verdict = choose_verdict(out, tie_break)
     return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked,
-                     tie_break)
+                     tie_break, _memory_note(prep, n_lean))
+
+
+def _memory_note(prep: _InclusionPrep | None, n_lean: int) -> str:
+    """What the diagnosis did differently because memory was short, in words."""
+    done = []
+    if prep is not None and prep.deferred:
+        done.append("the model with the inclusion was built after the other candidates, not beside them")
+    if n_lean:
+        done.append(f"the hyperelastic solve kept {n_lean} of its travels without a factorized tangent")
+    if not done:
+        return ""
+    return (f"memory was short, so {'; '.join(done)}. The results are the same; only the time grew "
+            f"(see ELASTOID_MEMORY_GB in docs/user-guide.md)")
 
 
 def _tie_break(ranked, problem: EffectProblem, tracked, noise, max_evaluations, say, cancel) -> TieBreak | None:

@@ -675,6 +675,8 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     assert len(deferred) == int(short_of_memory), said
     if short_of_memory:  # built after probe-slip was tried
         assert said.index(deferred[0]) < said.index("trying probe-slip") < said.index("trying inclusion"), said
+    noted = [line for line in d.lines() if line.startswith("memory: memory was short")]  # the report says so too
+    assert len(noted) == int(short_of_memory), d.lines()
     monkeypatch.delenv("ELASTOID_MEMORY_GB", raising=False)
     assert d.verdict == "inclusion", d.lines()
     c = d.candidate("inclusion")
