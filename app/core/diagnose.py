@@ -1018,7 +1018,8 @@ def _memory_note(prep: _InclusionPrep | None, n_lean: int) -> str:
     if prep is not None and prep.deferred:
         done.append("the model with the inclusion was built after the other candidates, not beside them")
     if n_lean:
-        done.append(f"the hyperelastic solve kept {n_lean} of its travels without a factorized tangent")
+        done.append(f"the hyperelastic solve kept no factorized tangent at {n_lean} of the travels it solves for "
+                    "(it refactorizes there instead)")
     if not done:
         return ""
     return (f"memory was short, so {'; '.join(done)}. The results are the same; only the time grew "

@@ -362,7 +362,7 @@ class HyperelasticModel:
         self._scratch: _Preconditioner | None = None  # a spare factor for trial tangents
         self._equilibria: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # travel -> (ratios, u)
         self._lean: set = set()  # travels whose equilibrium is kept without a factor (memory short)
-        self.n_lean = 0  # how many times a travel's factor was not kept for lack of memory
+        self._lean_ever: set = set()  # travels that went without a factor of their own at some point
         self.n_factorizations = 0
         self.n_back_solves = 0
         self.n_residuals = 0
@@ -453,6 +453,11 @@ class HyperelasticModel:
         self._ordering = f.ordering
         return f
 
+    @property
+    def n_lean(self) -> int:
+        """How many requested travels went without a factor of their own (memory short)."""
+        return len(self._lean_ever)
+
     def _may_keep_factor(self, d: float) -> bool:
         """Whether travel ``d`` may keep a factor of its own: the memory left can
         hold one more (the size of a live one), else it is noted (:attr:`n_lean`)."""
@@ -460,7 +465,7 @@ class HyperelasticModel:
                     None)
         if live is None or memory.can_hold(live.memory_bytes):
             return True
-        self.n_lean += 1
+        self._lean_ever.add(d)
         self.trace.append((d, "memory short: no factor of its own kept"))
         return False
 
