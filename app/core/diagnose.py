@@ -874,7 +874,7 @@ class _InclusionPrep:
     after the other candidates have released theirs."""
 
     def __init__(self, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, say, cancel):
-        self.problem, self.error, self._thread, self.inclusion = None, None, None, None
+        self.problem, self.error, self._thread, self.inclusion, self._work = None, None, None, None, None
         self.reference = None  # the current model on the inclusion's mesh (same_mesh_model)
         self.deferred = ""  # why the model is built in turn rather than in the background
         say("scanning the image plane for an undescribed inclusion")
@@ -911,13 +911,14 @@ class _InclusionPrep:
             except BaseException as exc:  # handed to the thread that waits for the model
                 self.error = exc
 
-        self._thread = threading.Thread(target=work, name="inclusion-mesh", daemon=True)
-        self._work, self._say = work, say
+        self._work, self._say = work, say  # run here by result() when built in turn
         located = (f"inclusion located at {np.round(self.guess.center_mm, 1).tolist()} mm, "
                    f"radius {self.guess.radius_mm:.1f} mm")
         held = memory.resident_bytes()
         if held is None or memory.can_hold(BESIDE_FACTOR * held):
             say(f"{located}; building its model in the background")
+            self._work = None
+            self._thread = threading.Thread(target=work, name="inclusion-mesh", daemon=True)
             self._thread.start()
         else:
             self.deferred = (f"memory is short ({memory.describe(memory.available_bytes())} left, "
@@ -932,12 +933,11 @@ class _InclusionPrep:
             raise self.error
         if self.guess is None:
             raise ElastoidError("no localized misfit to place an inclusion at")
-        if self.deferred:  # not started: built now, in this thread (once)
-            work, self._work = self._work, None
-            if work is not None:
-                work(self._say)
-        else:
+        if self._thread is not None:
             self._thread.join()
+        elif self._work is not None:  # built in turn: now, in this thread (once)
+            work, self._work = self._work, None
+            work(self._say)
         if self.error is not None:
             raise self.error
         return self.guess, self.inclusion, self.problem, self.reference

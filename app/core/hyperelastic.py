@@ -49,10 +49,10 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from app.core import memory
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import QUAD_BARY, QUAD_W, coefficients, element_positions, lame, shape_gradients
 from app.core.forward import MN_TO_N, FEModel
-from app.core import memory
 from app.core.solver import SymmetricFactor, single_threaded_blas
 
 
@@ -447,11 +447,16 @@ class HyperelasticModel:
         """A new factor; every tangent has the same pattern, so it shares a live
         factor's analysis (else reuses its ordering: METIS once)."""
         self.n_factorizations += 1
-        live = (p.factor for p in (*self._cache.values(), self._walk and self._walk[1], self._scratch) if p)
+        live = next(iter(self._held()), None)
         f = SymmetricFactor(self._upper_matrix(data), single=self.single, definite=True, ordering=self._ordering,
-                            share=next(live, None), slots=FACTOR_SLOTS)
+                            share=live and live.factor, slots=FACTOR_SLOTS)
         self._ordering = f.ordering
         return f
+
+    def _held(self) -> list[_Preconditioner]:
+        """The preconditioners this model holds: the travels' (the linear one's
+        included), the walk's and the spare."""
+        return [p for p in (*self._cache.values(), self._walk and self._walk[1], self._scratch) if p]
 
     @property
     def n_lean(self) -> int:
@@ -461,9 +466,8 @@ class HyperelasticModel:
     def _may_keep_factor(self, d: float) -> bool:
         """Whether travel ``d`` may keep a factor of its own: the memory left can
         hold one more (the size of a live one), else it is noted (:attr:`n_lean`)."""
-        live = next((p.factor for p in (*self._cache.values(), self._walk and self._walk[1], self._scratch) if p),
-                    None)
-        if live is None or memory.can_hold(live.memory_bytes):
+        live = next(iter(self._held()), None)
+        if live is None or memory.can_hold(live.factor.memory_bytes):
             return True
         self._lean_ever.add(d)
         self.trace.append((d, "memory short: no factor of its own kept"))

@@ -98,7 +98,7 @@ def test_a_warm_solve_reuses_the_kept_equilibria_and_agrees_with_a_cold_one():
 
 
 def _live_factors(hm: HyperelasticModel) -> int:
-    held = [p.factor for p in (*hm._cache.values(), hm._walk and hm._walk[1], hm._scratch) if p]
+    held = [p.factor for p in hm._held()]
     return len({id(f) for f in held if f._handle is not None or f._fallback is not None})
 
 
