@@ -372,14 +372,20 @@ class Candidate:
     # (scoring_reference)
     reference: dict | None = None
     negligible: str = ""  # why the fitted effect is physically no finding, whatever it removes ("" if it is one)
-    # read back from a session file (Diagnosis.from_state): fitted when the diagnosis ran,
-    # its model (``problem``) is rebuilt when it is added
+    # fitted when the diagnosis ran, but its model (``problem``) is not held: read back from
+    # a session file (Diagnosis.from_state), or dropped (drop_model); rebuilt when it is added
     restored: bool = False
 
     @property
     def fitted(self) -> bool:
         """The effect was fitted (it has a score, and a model or one to rebuild)."""
         return (self.problem is not None or self.restored) and math.isfinite(self.score)
+
+    def drop_model(self) -> None:
+        """Let go of the fitted model (its memory);
+        the candidate stays fitted, and its model is rebuilt at its parameters if it is added."""
+        if self.problem is not None:
+            self.problem, self.restored = None, math.isfinite(self.score)
 
     def state(self) -> dict:
         """Every field but the model, JSON-ready, for :meth:`from_state` (a session file)."""
@@ -1497,12 +1503,26 @@ class ModelCheck:
         v = self.history.current_version
         if v is None:
             raise ElastoidError("identify a model first")
+        self._drop_candidate_models()
         # the same tracked field as the versions' misfits, so the numbers agree
         self.last_diagnosis = diagnose(self.exp, effects=v.effects, candidates=candidates, problem=self.problem,
                                        start=v.parameters, mesh_settings=self.mesh_settings, inclusion=v.inclusion,
                                        tracked=self.tracked, progress=progress, cancel=cancel)
         self._diagnosed = self.history.current
         return self.last_diagnosis
+
+    def _drop_candidate_models(self) -> None:
+        """Free the last diagnosis' candidate models that no version uses, before a new
+        diagnosis makes its own: they were kept so that adding one is immediate, and
+        would otherwise be held beside the new ones (about 1 GB on the demo). If the
+        new diagnosis is cancelled, adding from the last one rebuilds the model."""
+        d = self.last_diagnosis
+        if d is None:
+            return
+        versions = {id(p) for p in self._problems.values()}
+        for c in d.candidates:
+            if c.problem is not None and id(c.problem) not in versions:
+                c.drop_model()
 
     def add(self, effect: str | None = None, *, progress=None, cancel=None) -> ModelVersion:
         """Add an effect (default: the last diagnosis' verdict) as a new version,

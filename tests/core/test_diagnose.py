@@ -22,13 +22,14 @@ then write the experiments again.
 
 import math
 import threading
+import weakref
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from app.core.diagnose import ModelCheck, ModelHistory, diagnose
-from app.core.errors import ElastoidError
+from app.core.errors import Cancelled, ElastoidError
 from app.core.experiment import read_experiment
 from app.core.simulate import read_truth
 from tests.core import synthetic
@@ -136,6 +137,16 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     assert mc.effects == () and len(mc.history) == 2
     # an effect the diagnosis did not support can be added, and its version says so
     assert d.candidate("probe-slip").score < 0
+    # a new diagnosis first frees the last one's candidate models that no version uses; cancelled
+    # here, it leaves the last diagnosis as it was, and probe-slip's model is rebuilt when added
+    slip = weakref.ref(d.candidate("probe-slip").problem)
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(Cancelled):
+        mc.diagnose(candidates=("probe-slip",), cancel=stop)
+    assert mc.last_diagnosis is d and slip() is None
+    assert d.candidate("probe-slip").problem is None and d.candidate("probe-slip").fitted
+    assert d.candidate("viscoelastic").problem is mc._problems[1]  # version 1's model stays
     v2 = mc.add("probe-slip")
     assert v2.parent == 0 and v2.warning and "revert to version 0" in v2.warning
     assert mc.history.versions[2].warning == v2.warning

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -442,3 +443,26 @@ def test_a_verdict_of_none_names_an_effect_that_came_close(window, qtbot):
     assert "A 60.0 kPa (now 107.0)" in text and "as well as the noise allows" not in text
     assert not panel.add_verdict_button.isEnabled()  # a near miss is not a verdict
     assert "compressibility comes close" in report_data(snap)["diagnosis"]["rest"]
+
+
+def test_the_diagnosis_says_when_memory_was_short(window, qtbot):
+    """What the diagnosis did differently because memory was short (the report's
+    'memory:' line) is shown under the diagnosed version, and only then."""
+    from app.core.diagnose import Candidate, Diagnosis, ModelHistory, NoiseModel, _memory_note
+    from app.gui.models.modelcheck import Snapshot
+
+    misfit = {"chi2": 5000.0, "force_rms_N": 0.02, "displacement_rms_px": 1.1}
+    h = ModelHistory().with_version((), {"E_B_kPa": 17.0, "E_A_kPa": 52.0}, {"nmi": 1.1}, misfit)
+    note = _memory_note(SimpleNamespace(deferred=True), 3)
+    panel = window.modelcheck_panel
+    for memory_note in (note, ""):
+        d = Diagnosis("x", Candidate("", (), {}, {}, misfit), [], "none", NoiseModel(0.02, 10, 0.1, 10), 98.0,
+                      memory_note=memory_note)
+        panel._show(panel.model.apply((None, None, Snapshot(h, None, d, 0, "diagnose", "diagnosis: verdict none"))))
+        text = panel.diagnosis_current.text()
+        assert "Diagnosed version 0 (baseline) in 98 s" in text
+        if memory_note:
+            assert "Memory was short, so the model with the inclusion was built after the other candidates" in text
+            assert "at 3 of the travels" in text and "ELASTOID_MEMORY_GB" in text
+        else:
+            assert "emory" not in text

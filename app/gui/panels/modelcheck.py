@@ -843,7 +843,9 @@ class ModelCheckPanel(Panel):
             f"{b.misfit.get('displacement_rms_px', math.nan):.3f} px."
             + ("" if self.model.diagnosis_is_current() else
                "  <span style='color:#b26a00'>The current version is another one: diagnose again to add to it."
-               "</span>"))
+               "</span>")
+            + (f"<br><span style='color:#555'>{html.escape(d.memory_note[:1].upper() + d.memory_note[1:])}.</span>"
+               if d.memory_note else ""))
         self.noise_label.setText(f"Noise model: {d.noise.describe()}.")
         rows = diagnosis_rows(d)
         self.diagnosis_table.setRowCount(len(rows))
