@@ -1,10 +1,11 @@
-"""Where the bundled resources (the demo experiment) are, from a source checkout or
-from the frozen application (PyInstaller). No Qt here.
+"""Where the bundled resources (the demo experiment) and the guides are, from a
+source checkout or from the frozen application (PyInstaller). No Qt here.
 
-In the source tree the resources sit next to the ``app`` package
-(``<repo>/resources``). In a PyInstaller bundle they are copied under the
-bundle's data directory, ``sys._MEIPASS`` (``<bundle>/_internal/resources`` for
-a onedir build); see packaging/elastoid.spec.
+In the source tree the resources and the guides sit next to the ``app``
+package (``<repo>/resources``, ``<repo>/docs``). In a PyInstaller bundle they
+are copied under the bundle's data directory, ``sys._MEIPASS``
+(``<bundle>/_internal/resources`` and ``_internal/docs`` for a onedir build);
+see packaging/elastoid.spec.
 """
 
 from __future__ import annotations
@@ -31,4 +32,10 @@ def resource_path(*parts: str) -> Path:
     return resource_root().joinpath(*parts)
 
 
-__all__ = ["is_frozen", "resource_path", "resource_root"]
+def docs_path(*parts: str) -> Path:
+    """A path under the guides' directory (``docs/`` beside ``resources/``, in the
+    source tree and in the bundle alike), e.g. ``docs_path("user-guide.md")``."""
+    return resource_root().parent.joinpath("docs", *parts)
+
+
+__all__ = ["docs_path", "is_frozen", "resource_path", "resource_root"]

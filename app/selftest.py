@@ -6,7 +6,7 @@ when it is used. Every check *uses* what it checks:
 
 ``imports``    every module of the app and the libraries it loads lazily
 ``solver``     a sparse SPD factorization (MKL PARDISO on x86-64, where it must load)
-``resources``  the bundled demo experiment reads, with its images
+``resources``  the bundled demo experiment reads, with its images; the guides (Help) are there
 ``mesh``       fTetWild meshes a small box with a spherical inclusion in a spawned child process
 ``forward``    the P2 model on that mesh: finite positive probe force, stiffer inclusion = more force
 ``render``     pyvista draws the clipped mesh off screen (no display); the image is not blank
@@ -151,8 +151,20 @@ def check_resources(ctx: _Context) -> str:
 
     if shipped_mesh_path(exp) is None:
         raise RuntimeError("the demo's mesh is not shipped (resources/meshes): the demo would be meshed again")
+    import re
+
+    from app.resources import docs_path
+
+    guide = docs_path("user-guide.md")
+    if not guide.is_file():
+        raise RuntimeError(f"the user guide is missing ({guide}): Help > User guide would show nothing")
+    shots = re.findall(r"!\[[^\]]*\]\((images/[^)\s]+)\)", guide.read_text(encoding="utf-8"))
+    missing = [s for s in shots if not docs_path(s).is_file()]
+    if not shots or missing:
+        raise RuntimeError(f"the user guide's screenshots are missing: {', '.join(missing) or 'none referenced'}")
+    n_guides = len(list(docs_path().glob("*.md")))
     return (f"demo: {len(exp.frames)} frames {img.shape[1]}x{img.shape[0]} px, {len(exp.force_log)} force samples, "
-            "its mesh shipped")
+            f"its mesh shipped; {n_guides} guides, the user guide's {len(shots)} screenshots")
 
 
 def check_mesh(ctx: _Context) -> str:

@@ -50,6 +50,7 @@ class MainWindow(QMainWindow):
         self.error_boxes: list = []
         self._busy: dict[str, tuple[str, int, int]] = {}
         self._closing = False
+        self.guide_window = None  # Help > User guide, made on first use
 
         self.log_panel = LogPanel()
         self.images_panel = ImagesPanel(self.session)
@@ -235,6 +236,8 @@ class MainWindow(QMainWindow):
         self.act_contact = self._action("Find &contact", self.rig_panel.find_contact)
         self.act_reset_layout = self._action("&Reset layout", self.reset_layout)
         self.act_welcome = self._action("&Welcome page", lambda: self.show_welcome(True))
+        self.act_guide = self._action("&User guide", lambda: self.show_guide(), QKeySequence.HelpContents,
+                                      "The user guide and the other guides, in a window of their own (F1)")
         self.act_about = self._action("&About ElastoID", self.about)
 
     def _build_menus(self) -> None:
@@ -264,6 +267,8 @@ class MainWindow(QMainWindow):
         v.addAction(self.act_reset_layout)
         v.addAction(self.act_welcome)
         h = mb.addMenu("&Help")
+        h.addAction(self.act_guide)
+        h.addSeparator()
         h.addAction(self.act_about)
 
     def _build_toolbar(self) -> None:
@@ -534,6 +539,19 @@ class MainWindow(QMainWindow):
 
     def emergency_stop(self) -> None:
         self.rig_panel.emergency_stop()
+
+    def show_guide(self, name: str = "user-guide.md", anchor: str = ""):
+        """The guides' window (one per main window), showing ``name`` at ``anchor``."""
+        from .guide import GuideWindow
+
+        if self.guide_window is None:
+            self.guide_window = GuideWindow(self)
+        w = self.guide_window
+        w.show_guide(name, anchor)
+        w.show()
+        w.raise_()
+        w.activateWindow()
+        return w
 
     def about(self) -> None:
         QMessageBox.about(self, "About ElastoID",

@@ -82,3 +82,77 @@ def test_docs_screenshots_come_from_the_current_code(tiny_experiment, visco_expe
     with Image.open(out / "mesh.png") as im:
         right = np.asarray(im.convert("RGB"))[200:600, 500:1200]
     assert len(np.unique(right.reshape(-1, 3), axis=0)) > 64
+
+
+LINK = re.compile(r"\]\(\s*<?([^)>\s]*)>?\)")
+
+
+def test_help_shows_the_guides_and_their_links_lead_somewhere(window, qtbot):
+    """Help > User guide opens docs/user-guide.md in a window of its own, with the
+    screenshots scaled to the page. In every guide it lists, each link within the
+    page scrolls to its heading (Qt names no anchors: the guide matches GitHub's),
+    each link to another guide opens it (Back returns), and a guide that is not
+    there says so instead of failing."""
+    from PySide6.QtCore import QUrl
+    from PySide6.QtGui import QTextDocument
+
+    from app.gui.guide import GUIDES, heading_anchor
+
+    assert heading_anchor("7. Model check: compare, diagnose, add an effect") == \
+        "7-model-check-compare-diagnose-add-an-effect"
+    assert heading_anchor("Where the model check stops") == "where-the-model-check-stops"
+    window.act_guide.trigger()
+    gw = window.guide_window
+    qtbot.waitExposed(gw)
+    b = gw.browser
+    assert b.source().toLocalFile() == str(ROOT / "docs" / "user-guide.md")
+    assert set(gw.pages) == set(GUIDES)  # the source tree has them all
+    doc, room = b.document(), b.viewport().width()
+    widths = []
+    block = doc.begin()
+    while block.isValid():
+        it = block.begin()
+        while not it.atEnd():
+            fmt = it.fragment().charFormat()
+            if fmt.isImageFormat():
+                img = fmt.toImageFormat()
+                assert not doc.resource(QTextDocument.ImageResource, QUrl(img.name())).isNull(), img.name()
+                widths.append(img.width())
+            it += 1
+        block = block.next()
+    assert len(widths) == len(referenced_images_in(ROOT / "docs" / "user-guide.md"))
+    assert 0 < max(widths) <= room
+
+    for name in GUIDES:
+        assert gw.show_guide(name), name
+        text = (ROOT / "docs" / name).read_text(encoding="utf-8")
+        text = re.sub(r"`[^`\n]*`", "", re.sub(r"```.*?```", "", text, flags=re.S))  # code is not linked
+        for target in LINK.findall(text):
+            if target.startswith("#"):
+                assert b.scroll_to_heading(target[1:]), f"{name}: no heading for the link {target}"
+                bar = b.verticalScrollBar()  # the heading at the top of the view, or the page's end in view
+                assert b.cursorRect().top() <= 5 or bar.value() == bar.maximum(), (name, target)
+            elif "://" not in target and not target.startswith("mailto:"):
+                path = ROOT / "docs" / target.split("#")[0]
+                assert path.is_file(), f"{name}: links to {target}, which is not there"
+
+    gw.show_guide("user-guide.md")
+    b.follow(QUrl("experiment-format.md"))
+    assert b.source().toLocalFile().endswith("experiment-format.md") and gw.back.isEnabled()
+    gw.back.click()
+    assert b.source().toLocalFile().endswith("user-guide.md")
+    b.follow(QUrl("#8-the-rig"))
+    assert b.verticalScrollBar().value() > 0 and b.textCursor().block().text() == "8. The rig"
+    b.follow(QUrl("no-such-guide.md"))
+    assert "no-such-guide.md is not in this installation" in gw.note.text()
+    assert b.source().toLocalFile().endswith("user-guide.md")
+    gw.find_box.setText("ELASTOID_MEMORY_GB")
+    assert gw.find_next() and b.textCursor().selectedText() == "ELASTOID_MEMORY_GB"
+    gw.find_box.setText("no such words in the guide")
+    assert not gw.find_next() and "is not on this page" in gw.note.text()
+    window.act_guide.trigger()
+    assert window.guide_window is gw  # one window, shown again
+
+
+def referenced_images_in(md: Path) -> list[str]:
+    return [m.group(1) or m.group(2) for m in IMAGE_REF.finditer(md.read_text(encoding="utf-8"))]
