@@ -20,7 +20,7 @@ import scipy.sparse as sp
 
 from app.core.fem import AffineOperator, P2Space, assemble, coefficients, interpolation_matrix, p2_space
 from app.core.mesh import TetMesh
-from app.core.solver import Factorized
+from app.core.solver import Factorized, preconditioner
 
 MN_TO_N = 1e-3  # K u is in mN with kPa and mm
 
@@ -225,7 +225,7 @@ class ReducedModel:
         if self._borrowed and not self._prec.alive:  # its owner freed it: factorize one's own
             self._prec, self._borrowed = None, False
         if self._prec is None:
-            self._prec = Factorized(self._matrix(theta))
+            self._prec = preconditioner(self._matrix(theta))
             self.n_full_solves += 1
 
     def borrow_preconditioner(self, other: "ReducedModel") -> bool:

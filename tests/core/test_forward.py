@@ -135,7 +135,8 @@ def test_a_model_trains_with_another_models_factorization_and_leaves_it_to_its_o
     assert borrower._prec is None and owner._prec.alive
     theta0 = np.exp(np.log(training_set(2)).mean(axis=0))
     b = owner._rhs(theta0)
-    assert np.linalg.norm(owner._matrix(theta0) @ owner._prec.solve(b) - b) < 1e-9 * np.linalg.norm(b)
+    # the owner's own factor still (single precision: a relative residual about 1e-6 on this mesh)
+    assert np.linalg.norm(owner._matrix(theta0) @ owner._prec.solve(b) - b) < 1e-5 * np.linalg.norm(b)
     # borrowed again, then the owner frees it first: the borrower factorizes its own to enrich
     assert borrower.borrow_preconditioner(owner)
     owner.release()

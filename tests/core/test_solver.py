@@ -121,3 +121,29 @@ def test_factors_sharing_one_analysis_solve_independently():
     assert np.abs(2.0 * (A @ scaled[0].solve(b)) - b).max() < 1e-10
     for f in (*scaled, again, beyond):
         f.free()
+
+
+@pytest.mark.parametrize("pardiso", [True, False], ids=["pardiso", "superlu"])
+def test_the_reduced_models_preconditioner(monkeypatch, pardiso):
+    """preconditioner(): a factor of the whole SPD matrix (given in full, not as
+    its upper triangle), single precision with PARDISO (residual to single
+    precision's accuracy), SuperLU's double precision without it; freed on
+    request; a matrix that is not positive definite is refused in words."""
+    from app.core.errors import ElastoidError
+
+    if pardiso and not solver.HAVE_PARDISO:
+        pytest.fail("MKL PARDISO is expected on this platform (x86_64 with mkl)")
+    monkeypatch.setattr(solver, "HAVE_PARDISO", pardiso)
+    A = _spd()
+    b = np.random.default_rng(2).normal(size=A.shape[0])
+    p = solver.preconditioner(A)
+    x = p.solve(b)
+    assert x.dtype == np.float64
+    rel = np.linalg.norm(A @ x - b) / np.linalg.norm(b)
+    assert rel < (1e-5 if pardiso else 1e-12) and (rel > 1e-12) == pardiso  # single precision only with MKL
+    assert p.alive
+    p.free()
+    assert not p.alive
+    if pardiso:  # SuperLU factorizes an indefinite matrix without complaint
+        with pytest.raises(ElastoidError, match=r"stiffness matrix \(300 unknowns\) is not positive definite"):
+            solver.preconditioner((A - 40.0 * sp.eye(A.shape[0])).tocsr())
