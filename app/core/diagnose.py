@@ -917,13 +917,11 @@ class _InclusionPrep:
             except BaseException as exc:  # handed to the thread that waits for the model
                 self.error = exc
 
-        self._work, self._say = work, say  # run here by result() when built in turn
         located = (f"inclusion located at {np.round(self.guess.center_mm, 1).tolist()} mm, "
                    f"radius {self.guess.radius_mm:.1f} mm")
         held = memory.resident_bytes()
         if held is None or memory.can_hold(BESIDE_FACTOR * held):
             say(f"{located}; building its model in the background")
-            self._work = None
             self._thread = threading.Thread(target=work, name="inclusion-mesh", daemon=True)
             self._thread.start()
         else:
@@ -931,6 +929,7 @@ class _InclusionPrep:
                              f"{memory.describe(BESIDE_FACTOR * held + memory.RESERVE_BYTES)} wanted): its model "
                              "is built after the other candidates")
             say(f"{located}; {self.deferred}")
+            self._work, self._say = work, say  # run by result(), in its thread
 
     def result(self):
         """(guess, inclusion dict, the model with the inclusion, the current model on

@@ -46,7 +46,8 @@ class GuideBrowser(QTextBrowser):
         super().__init__(parent)
         self.setOpenLinks(False)
         self.anchorClicked.connect(self.follow)
-        self.sourceChanged.connect(lambda _url: self._fit_images())
+        self._images: list[int] = []  # the page's image positions (found once per page: a resize only refits)
+        self.sourceChanged.connect(self._new_page)
 
     def open_guide(self, name: str, anchor: str = "") -> bool:
         path = docs_path(name)
@@ -101,6 +102,18 @@ class GuideBrowser(QTextBrowser):
                 return True
         return False
 
+    def _new_page(self, _url=None) -> None:
+        self._images, block = [], self.document().begin()
+        while block.isValid():
+            it = block.begin()
+            while not it.atEnd():
+                frag = it.fragment()
+                if frag.isValid() and frag.charFormat().isImageFormat():
+                    self._images.append(frag.position())
+                it += 1
+            block = block.next()
+        self._fit_images()
+
     def resizeEvent(self, event) -> None:
         super().resizeEvent(event)
         self._fit_images()
@@ -114,29 +127,21 @@ class GuideBrowser(QTextBrowser):
         top = self.cursorForPosition(QPoint(0, 0)).block()
         offset = bar.value() - layout.blockBoundingRect(top).top()
         changed = False
-        block = doc.begin()
-        while block.isValid():
-            it = block.begin()
-            while not it.atEnd():
-                frag = it.fragment()
-                fmt = frag.charFormat()
-                if frag.isValid() and fmt.isImageFormat():
-                    img = fmt.toImageFormat()
-                    natural = doc.resource(QTextDocument.ImageResource, QUrl(img.name()))
-                    w = natural.width() if hasattr(natural, "width") and natural.width() > 0 else 0
-                    if w:
-                        want = min(w, room)
-                        if abs(img.width() - want) > 0.5:
-                            new = QTextImageFormat(img)
-                            new.setWidth(want)
-                            new.setHeight(natural.height() * want / w)
-                            cur = QTextCursor(doc)
-                            cur.setPosition(frag.position())
-                            cur.setPosition(frag.position() + frag.length(), QTextCursor.KeepAnchor)
-                            cur.setCharFormat(new)
-                            changed = True
-                it += 1
-            block = block.next()
+        for pos in self._images:
+            cur = QTextCursor(doc)
+            cur.setPosition(pos)
+            cur.setPosition(pos + 1, QTextCursor.KeepAnchor)
+            img = cur.charFormat().toImageFormat()
+            natural = doc.resource(QTextDocument.ImageResource, QUrl(img.name()))
+            w = natural.width() if hasattr(natural, "width") and natural.width() > 0 else 0
+            if w:
+                want = min(w, room)
+                if abs(img.width() - want) > 0.5:
+                    new = QTextImageFormat(img)
+                    new.setWidth(want)
+                    new.setHeight(natural.height() * want / w)
+                    cur.setCharFormat(new)
+                    changed = True
         if changed:
             bar.setValue(int(layout.blockBoundingRect(top).top() + offset))
 
