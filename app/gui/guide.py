@@ -56,6 +56,7 @@ class GuideBrowser(QTextBrowser):
             return False
         url = QUrl.fromLocalFile(str(path))
         if self.source().toLocalFile() != str(path):
+            self._images = []  # the old page's positions mean nothing while the new one loads
             self.setSource(url, QTextDocument.MarkdownResource)
         if anchor:
             self.scroll_to_heading(anchor)
@@ -115,22 +116,31 @@ class GuideBrowser(QTextBrowser):
         self._fit_images()
 
     def resizeEvent(self, event) -> None:
+        # the block at the top of the view, taken before the text reflows to the new width
+        top = self._top_block()
         super().resizeEvent(event)
-        self._fit_images()
+        self._fit_images(top)
 
-    def _fit_images(self) -> None:
+    def _top_block(self):
+        """(block at the top of the view, how far the view's top is below the block's top)."""
+        top = self.cursorForPosition(QPoint(0, 0)).block()
+        return top, self.verticalScrollBar().value() - self.document().documentLayout().blockBoundingRect(top).top()
+
+    def _fit_images(self, top=None) -> None:
         """Each image at most the page's width (the screenshots are 1,500 px wide),
         the block at the top of the view kept there."""
         doc = self.document()
         room = max(200, self.viewport().width() - 2 * int(doc.documentMargin()) - 8)
         layout, bar = doc.documentLayout(), self.verticalScrollBar()
-        top = self.cursorForPosition(QPoint(0, 0)).block()
-        offset = bar.value() - layout.blockBoundingRect(top).top()
+        reflowed = top is not None
+        top, offset = top if reflowed else self._top_block()
         changed = False
         for pos in self._images:
             cur = QTextCursor(doc)
             cur.setPosition(pos)
             cur.setPosition(pos + 1, QTextCursor.KeepAnchor)
+            if not cur.charFormat().isImageFormat():
+                continue
             img = cur.charFormat().toImageFormat()
             natural = doc.resource(QTextDocument.ImageResource, QUrl(img.name()))
             w = natural.width() if hasattr(natural, "width") and natural.width() > 0 else 0
@@ -142,8 +152,9 @@ class GuideBrowser(QTextBrowser):
                     new.setHeight(natural.height() * want / w)
                     cur.setCharFormat(new)
                     changed = True
-        if changed:
-            bar.setValue(int(layout.blockBoundingRect(top).top() + offset))
+        if changed or reflowed:
+            rect = layout.blockBoundingRect(top)
+            bar.setValue(int(rect.top() + min(offset, max(0.0, rect.height() - 1))))
 
 
 class GuideWindow(QDialog):

@@ -143,6 +143,14 @@ def test_help_shows_the_guides_and_their_links_lead_somewhere(window, qtbot):
     assert b.source().toLocalFile().endswith("user-guide.md")
     b.follow(QUrl("#8-the-rig"))
     assert b.verticalScrollBar().value() > 0 and b.textCursor().block().text() == "8. The rig"
+    # a resize keeps the heading at the top (the text reflows and the screenshots are refitted)
+    b.follow(QUrl("#7-model-check-compare-diagnose-add-an-effect"))
+    heading = b.textCursor().block()
+    for width in (700, 1200, 960):
+        gw.resize(width, gw.height())
+        qtbot.wait(20)
+        top = doc.documentLayout().blockBoundingRect(heading).top()
+        assert abs(top - b.verticalScrollBar().value()) <= 2, (width, top, b.verticalScrollBar().value())
     b.follow(QUrl("no-such-guide.md"))
     assert "no-such-guide.md is not in this installation" in gw.note.text()
     assert b.source().toLocalFile().endswith("user-guide.md")

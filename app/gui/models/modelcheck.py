@@ -146,7 +146,7 @@ class ModelCheckModel:
             d = check.diagnose(candidates, progress=progress, cancel=cancel)
             h = check.history
             return (check, inputs, Snapshot(h, prev.comparison, d, h.current, "diagnose",
-                                                 f"diagnosis: verdict {d.verdict} ({d.seconds:.0f} s)"))
+                                                 f"diagnosis: verdict {d.verdict}"))
 
         return work
 
