@@ -394,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command")
 
     ip = sub.add_parser("identify", help="fit the model's free parameters to an experiment")
-    ip.add_argument("experiment", type=Path)
+    ip.add_argument("experiment", type=Path, help="the experiment folder (docs/experiment-format.md)")
     ip.add_argument("--effects", default="", help="physical effects added to the baseline (ids, comma-separated)")
     ip.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
     ip.add_argument("--cost", choices=("joint", "nmi"), default="joint",
@@ -414,7 +414,7 @@ def build_parser() -> argparse.ArgumentParser:
     ip.set_defaults(func=cmd_identify)
 
     dp = sub.add_parser("diagnose", help="find which physical effect the model misses")
-    dp.add_argument("experiment", type=Path)
+    dp.add_argument("experiment", type=Path, help="the experiment folder (docs/experiment-format.md)")
     dp.add_argument("--effects", default="", help="effects already in the current model (ids, comma-separated)")
     dp.add_argument("--candidates", default="", help="effects to try (default: every effect not in the model)")
     dp.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
@@ -424,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     dp.set_defaults(func=cmd_diagnose)
 
     sp = sub.add_parser("simulate", help="write a synthetic experiment folder (with truth.toml)")
-    sp.add_argument("output", type=Path)
+    sp.add_argument("output", type=Path, help="the experiment folder to write (new or empty, else --overwrite)")
     sp.add_argument("--seed", type=int, default=0, help="random seed of the speckle, the noise and the truth mesh (default 0)")
     sp.add_argument("--size-mm", default="90,90,96", help="specimen box x,y,z in mm (default: the paper's 90,90,96)")
     sp.add_argument("--inclusion", default="sphere:45,45,66,15",
