@@ -1,6 +1,6 @@
 """Hidden effects at paper size, through the command line as a user runs it.
 
-    python bench/paper_effects.py [--out DIR] [--cases visco,slide,...] [--seed-offset N]
+    python bench/paper_effects.py [--out DIR] [--cases visco,slide,...] [--seed-offset N] [--probe-edge-mm X]
 
 For each case, ``elastoid simulate DIR/CASE --seed S ...`` writes the paper's
 phantom (90 x 90 x 96 mm, inclusion A of 63 kPa in B of 18 kPa, pressed
@@ -131,7 +131,7 @@ def _errors(params: dict, truth: dict) -> str:
     return ", ".join(f"{params[f'E_{k}_kPa'] / v - 1:+.1%}" for k, v in truth.items() if f"E_{k}_kPa" in params)
 
 
-def run(out: Path, name: str, seed_offset: int = 0) -> list[str]:
+def run(out: Path, name: str, seed_offset: int = 0, probe_edge_mm: float | None = None) -> list[str]:
     from app.core.effects import INFO
     from app.core.simulate import read_truth
 
@@ -145,10 +145,13 @@ def run(out: Path, name: str, seed_offset: int = 0) -> list[str]:
         _elastoid("simulate", str(folder), "--overwrite", "--seed", str(seed), *options)
         if case in HOLD_FPS:
             video_hold(folder, HOLD_FPS[case], seed)
+    # the diagnosis of another identification mesh is written beside the automatic one's
+    result = out / (f"{name}.json" if probe_edge_mm is None else f"{name}-probe-edge-{probe_edge_mm:g}.json")
+    mesh = [] if probe_edge_mm is None else ["--probe-edge-mm", f"{probe_edge_mm:g}"]
     t = time.perf_counter()
-    peak_gb = _elastoid("diagnose", str(folder), "--json", str(out / f"{name}.json"), "--quiet")
+    peak_gb = _elastoid("diagnose", str(folder), "--json", str(result), "--quiet", *mesh)
     seconds = time.perf_counter() - t
-    d = json.loads((out / f"{name}.json").read_text())
+    d = json.loads(result.read_text())
     truth = read_truth(folder)
     hidden_regions = {r["name"] for r in truth.get("hidden_regions", [])}
     moduli = {k: v for k, v in truth["moduli_kPa"].items() if k not in hidden_regions}  # the described ones
@@ -176,6 +179,9 @@ def main() -> int:
     ap.add_argument("--seed-offset", type=int, default=0,
                     help="add this to every case's seed (a blind re-run on fresh noise, speckle and truth "
                          "meshes; its folders are named CASE+OFFSET)")
+    ap.add_argument("--probe-edge-mm", type=float,
+                    help="diagnose on an identification mesh with this element size on the probe face (default: "
+                         "automatic; the demo's is 2.0 mm); its JSON is CASE-probe-edge-X.json")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     head = ["case", "hidden", "verdict", "hidden's rank (score)", "moduli with it (B, A)", "error falls with it",
@@ -183,7 +189,7 @@ def main() -> int:
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for name in args.cases.split(","):
-        print("| " + " | ".join(run(args.out, name, args.seed_offset)) + " |", flush=True)
+        print("| " + " | ".join(run(args.out, name, args.seed_offset, args.probe_edge_mm)) + " |", flush=True)
     return 0
 
 
