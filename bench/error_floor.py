@@ -1,0 +1,102 @@
+"""What the displacement error left by the right effect is made of.
+
+    python bench/error_floor.py FOLDER [FOLDER ...]
+
+FOLDER: a synthetic experiment (``elastoid simulate``, with truth.toml) that
+``elastoid diagnose FOLDER --json FOLDER.json`` has diagnosed
+(bench/paper_effects.py writes both). The speckle is tracked once with the
+baseline's fit, as the diagnosis does. For the baseline's fit, the verdict's
+fit and the truth (the true moduli, Poisson's ratio and boundary, on the
+identification mesh) the table gives the RMS of the tracked residual's 3 x 3
+medians, the measure behind the diagnosis' "error beyond the noise", over
+every tracked block (as the diagnosis takes it) and over the blocks whose
+speckle correlated at least 0.45 or 0.5 after registration (tracking keeps
+blocks from 0.3). The verdict must be an image effect on the identification
+mesh (sliding-bottom, probe-slip, compressibility) or none.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+QUALITIES = (0.45, 0.5)
+
+
+def median_rms(tracked, model_px, qmin: float = 0.0) -> tuple[float, int]:
+    """RMS of the 3 x 3 medians of measured - model over the valid blocks that
+    correlated at least ``qmin``; and how many blocks that is."""
+    import numpy as np
+
+    from app.core.diagnose import _systematic
+
+    sq, n, kept = 0.0, 0, 0
+    for tp, m in zip(tracked.pairs, model_px):
+        keep = tp.valid & (tp.quality >= qmin)
+        kept += int(keep.sum())
+        s, _ = _systematic(tp.measured_px - m, keep, tp.grid_index)
+        sq += float((s ** 2).sum())
+        n += len(s)
+    return float(np.sqrt(sq / max(n, 1))), kept
+
+
+def run(folder: Path) -> list[list[str]]:
+    from app.core.compare import track
+    from app.core.diagnose import Likelihood, _misfit, current_model, noise_model
+    from app.core.experiment import read_experiment
+    from app.core.simulate import read_truth
+
+    exp = read_experiment(folder)
+    truth = read_truth(folder)
+    d = json.loads(folder.with_name(folder.name + ".json").read_text())
+    verdict = d["verdict"]
+    if verdict not in ("none", "sliding-bottom", "probe-slip", "compressibility"):
+        return [[folder.name, verdict, "(not an image effect on the identification mesh: skipped)"]]
+    base = current_model(exp)
+    pb = base.complete(d["baseline"]["parameters"])
+    tracked = track(base, pb)
+    fits = [("baseline", base, pb)]
+    true = {f"E_{k}_kPa": float(v) for k, v in truth["moduli_kPa"].items()}
+    if verdict != "none":
+        model = current_model(exp, effects=(verdict,), base=base)
+        cand = next(c for c in d["candidates"] if c["effect"] == verdict)
+        if verdict == "compressibility":
+            true["nu"] = float(truth["nu"])
+        fits += [(verdict, model, model.complete(cand["parameters"])), ("truth", model, model.complete(true))]
+    else:
+        fits.append(("truth", base, base.complete(true)))
+    rows = []
+    for label, problem, params in fits:
+        lik = Likelihood(problem, tracked, noise_model(problem, tracked))
+        mp = lik.model_px(params)
+        excess = _misfit(lik, params)["displacement_excess_px"]
+        every, n_all = median_rms(tracked, mp)
+        cols = [folder.name, label, f"{excess:.3f}", f"{every:.3f} ({n_all})"]
+        for q in QUALITIES:
+            r, n = median_rms(tracked, mp, q)
+            cols.append(f"{r:.3f} ({n})")
+        rows.append(cols)
+    return rows
+
+
+def main() -> int:
+    folders = [Path(a).resolve() for a in sys.argv[1:]]
+    if not folders:
+        print(__doc__)
+        return 2
+    head = ["case", "model", "error beyond the noise, px (the diagnosis')", "3x3-median RMS px, every block (blocks)",
+            *(f"correlation >= {q} (blocks)" for q in QUALITIES)]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for f in folders:
+        for row in run(f):
+            print("| " + " | ".join(row) + " |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
