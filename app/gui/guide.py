@@ -56,7 +56,6 @@ class GuideBrowser(QTextBrowser):
             return False
         url = QUrl.fromLocalFile(str(path))
         if self.source().toLocalFile() != str(path):
-            self._images = []  # the old page's positions mean nothing while the new one loads
             self.setSource(url, QTextDocument.MarkdownResource)
         if anchor:
             self.scroll_to_heading(anchor)
@@ -103,6 +102,13 @@ class GuideBrowser(QTextBrowser):
                 return True
         return False
 
+    def doSetSource(self, name, type=QTextDocument.UnknownResource) -> None:
+        # a page opened by setSource (links, the guide buttons): the old page's image
+        # positions mean nothing while the new one loads, and a resize meanwhile refits.
+        # (Back does not pass here; its sourceChanged comes before any resize.)
+        self._images = []
+        super().doSetSource(name, type)
+
     def _new_page(self, _url=None) -> None:
         self._images, block = [], self.document().begin()
         while block.isValid():
@@ -139,9 +145,10 @@ class GuideBrowser(QTextBrowser):
             cur = QTextCursor(doc)
             cur.setPosition(pos)
             cur.setPosition(pos + 1, QTextCursor.KeepAnchor)
-            if not cur.charFormat().isImageFormat():
+            fmt = cur.charFormat()
+            if not fmt.isImageFormat():
                 continue
-            img = cur.charFormat().toImageFormat()
+            img = fmt.toImageFormat()
             natural = doc.resource(QTextDocument.ImageResource, QUrl(img.name()))
             w = natural.width() if hasattr(natural, "width") and natural.width() > 0 else 0
             if w:
