@@ -121,7 +121,14 @@ def _systematic(residual: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> tu
 
 
 MATERIAL_FRACTION = 0.3  # of the current model's error an effect must remove to be material
-MATERIAL_MIN = 0.5  # an error below this fraction of its noise floor is nothing to explain
+# An error beyond the noise below this multiple of its noise floor is nothing to
+# explain: the identification mesh's own error leaves that much with no hidden
+# effect. With weak blocks confirmed by a larger block (compare.track) the
+# tracking noise, and so the floor, fell, and on the small phantom with no
+# hidden effect (seed 17) the baseline's error was 1.17 times its floor, which
+# a small soft sphere under the probe then removed. docs/model-check.md,
+# "Weak blocks confirmed by a larger block".
+MATERIAL_MIN = 1.5
 
 
 def explained(before: dict, after: dict) -> dict:
