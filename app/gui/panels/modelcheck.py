@@ -820,7 +820,8 @@ class ModelCheckPanel(Panel):
                     f"or a sharp misfit; left out of the shares); " if n_out else "")
         self.frame_note.setText(
             f"Frame {fc.target} (probe travel {fc.displacement_mm:.2f} mm) against frame {fc.source}: "
-            f"{n_valid} of {len(valid)} tracked blocks kept; {out_text}difference {rms:.2f} px RMS, drawn "
+            f"{n_valid} of {len(valid)} tracked blocks kept (the others left the image or matched too weakly "
+            f"to trust); {out_text}difference {rms:.2f} px RMS, drawn "
             f"{scale:g}x longer. "
             f"Residual map: 0 where the warped source matches the frame, 1 where they are unrelated. "
             f"Bars: this frame (filled), all frames (dashed).")
