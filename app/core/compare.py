@@ -213,6 +213,8 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
             ncc, inside, positions of its pixels in the target, shift)."""
             offs_s = np.arange(size) - (size - 1) / 2.0
             offs_big = np.arange(size + 2 * mrg) - (size + 2 * mrg - 1) / 2.0
+            pr = rr + offs_s[:, None] + 0 * offs_s[None, :]  # the block's source pixels
+            pc = cc + 0 * offs_s[:, None] + offs_s[None, :]
             t_start = np.zeros(2)
             if chain and prev is not None and prev[3][ib]:
                 # through the previous frame: the block as it looked there (its pixels
@@ -222,8 +224,6 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
                 if size == b:
                     pos = prev_pos[ib]
                 else:  # a larger block: where the previous pair's model and shift put its pixels
-                    pr = rr + offs_s[:, None] + 0 * offs_s[None, :]
-                    pc = cc + 0 * offs_s[:, None] + offs_s[None, :]
                     pos = [pr + map_coordinates(prev_coarse[..., 1], [pr / step, pc / step], order=1, mode="nearest")
                            + prev_t[ib][0],
                            pc + map_coordinates(prev_coarse[..., 0], [pr / step, pc / step], order=1, mode="nearest")
@@ -231,8 +231,6 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
                 S = map_coordinates(prev_img, pos, order=SOURCE_ORDER, mode="nearest")
                 t_start = prev_t[ib]
             else:
-                pr = rr + offs_s[:, None] + 0 * offs_s[None, :]
-                pc = cc + 0 * offs_s[:, None] + offs_s[None, :]
                 S = map_coordinates(src, [pr, pc], order=SOURCE_ORDER, mode="nearest")
             # the target, sampled where the model moved each source pixel (the block plus a margin)
             br = rr + offs_big[:, None] + 0 * offs_big[None, :]
@@ -267,9 +265,9 @@ def track(problem, params: dict, block_px: int | None = None, min_quality: float
             m_px, mod_px, ncc, inside, pos, t_acc = match(cc, rr, b, ib)
             if confirm_weak and inside and min_quality <= ncc < WEAK_QUALITY:
                 # a weak peak must hold over a block twice the size (see the module docstring)
-                big = match(cc, rr, 2 * b, ib)
-                inside = big[3] and big[2] >= min_quality and \
-                    np.abs(np.subtract(big[0], m_px)).max() <= CONFIRM_TOLERANCE_PX
+                big_px, _, big_ncc, big_inside, _, _ = match(cc, rr, 2 * b, ib)
+                inside = big_inside and big_ncc >= min_quality and \
+                    np.abs(np.subtract(big_px, m_px)).max() <= CONFIRM_TOLERANCE_PX
             meas.append(m_px)
             model.append(mod_px)
             qual.append(ncc)

@@ -127,7 +127,8 @@ def test_a_weak_block_is_kept_only_when_a_larger_block_confirms_it(tmp_path_fact
     def wrong(tracked):
         return sum(int((tp.valid & (np.abs(tp.residual_px).max(axis=1) > 1.0)).sum()) for tp in tracked.pairs)
 
-    assert wrong(before) >= 4 and wrong(after) <= wrong(before) // 2, (wrong(before), wrong(after))
+    n_before, n_after = wrong(before), wrong(after)
+    assert n_before >= 4 and n_after <= n_before // 2, (n_before, n_after)
     for pb, pa in zip(before.pairs, after.pairs):
         dropped = pb.valid & ~pa.valid
         assert dropped.any() and np.all(pb.quality[dropped] < WEAK_QUALITY)
