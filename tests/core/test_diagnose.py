@@ -656,8 +656,8 @@ def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_fa
         assert tb.winner == effect and tb.yields[other.effect] and not tb.yields[effect], (tb.to_json_dict(), d.lines())
 
 
-@pytest.mark.parametrize("case,within_mm,short_of_memory", [("inclusion", 3.0, False), ("e-inclusion", 6.0, True)])
-def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_factory, monkeypatch, case, within_mm,
+@pytest.mark.parametrize("case,short_of_memory", [("inclusion", False), ("e-inclusion", True)])
+def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_factory, monkeypatch, case,
                                                                     short_of_memory):
     """A 4 mm stiffer sphere the experiment does not describe, beside region A
     (seed 13: 60 kPa in 15 kPa tissue beside a stiff sphere; seed 25: 72 kPa in
@@ -665,14 +665,14 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     new region near it (within 3 mm on seed 13), the diagnosis names it, the
     error beyond the noise falls, and the described moduli stay right.
 
-    On seed 25 (2026-11-26, committed meshes) the located sphere is 5.4 mm from
-    the truth's: radius 3.2 mm at (36.3, 20, 28.3) against 4 mm at (32, 20, 25),
-    shallower and beside the probe's edge, and 34 times stiffer than its tissue
-    where the truth is 3 times. Depth, size and stiffness trade off in the
-    tracked field, and the located centre is not refined (docs/model-check.md,
-    "The inclusion locator"); the tolerance there is 6 mm. The error beyond the
-    noise falls 12x (0.366 -> 0.030 px), moduli -2.9% and +3.4% (the baseline's
-    E_A was +19%).
+    On seed 25 (committed meshes, 2026-11-29: the located sphere's mesh is committed
+    too) the located sphere is 1.1 mm from the truth's: radius 3.2 mm at
+    (33.1, 20, 25.4) against 4 mm at (32, 20, 25), fitted 7 times stiffer than
+    its tissue where the truth is 3 times (the smaller sphere, the stiffer: size
+    and stiffness trade off in the tracked field). The error beyond the noise
+    falls from 0.330 px to within the noise, moduli -2.3% and -3.9%. Before weak
+    blocks were confirmed by a larger block (compare.track) the scan put it
+    5.4 mm away, at (36.3, 20, 28.3), 34 times stiffer.
 
     Seed 25 runs short of memory (ELASTOID_MEMORY_GB below what the process
     holds): the model with the sphere is then built in turn, after probe-slip,
@@ -693,7 +693,8 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     monkeypatch.delenv("ELASTOID_MEMORY_GB", raising=False)
     assert d.verdict == "inclusion", d.lines()
     c = d.candidate("inclusion")
-    assert np.linalg.norm(np.array(c.inclusion["center_mm"]) - c_true) < within_mm, c.inclusion
+    synthetic.assert_mesh_committed(exp, c.inclusion)  # the sphere's mesh too: the outcome depends on it
+    assert np.linalg.norm(np.array(c.inclusion["center_mm"]) - c_true) < 3.0, c.inclusion
     assert c.parameters[f"E_{c.inclusion['name']}_kPa"] > c.parameters["E_B_kPa"], c.parameters  # stiffer
     hidden = {r["name"] for r in truth["hidden_regions"]}
     described = {k: v for k, v in truth["moduli_kPa"].items() if k not in hidden}
@@ -701,21 +702,29 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
         assert abs(err) < 0.10, (region, err, d.lines())
     # The located sphere (one of three radii, centre not refined) is meshed as a region; that mesh is
     # committed too (tests/data/meshes), since fTetWild is not deterministic. Measured on these meshes
-    # (2026-11-25): the error beyond the noise falls 6.2x (0.319 -> 0.052 px); the true sphere, given
+    # (2026-11-25): the error beyond the noise falls 6.2x (0.319 -> 0.052 px; 5.9x since weak blocks are
+    # confirmed by a larger block, 2026-11-29); the true sphere, given
     # as a described region, leaves 0.102 px (bench/inclusion_floor.py). Before the probe face was
     # meshed along its outline the same case fell 1.43x: the unbonded strip along the probe's edges,
     # different in the truth's mesh and the model's, left an error no inclusion could remove.
     assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
-    # forced into a near tie with probe-slip, the two fitted together on the inclusion's mesh (the slip
-    # fitted there too, without the sphere) still say the inclusion
+    # forced into a near tie with probe-slip, the two are fitted together on the inclusion's mesh (the slip
+    # fitted there too, without the sphere): the inclusion earns its parameters on top of the slip, and the
+    # tie goes to the inclusion. Whether the slip yields is not asserted: it is a switch, with no parameter
+    # that gives back the model without it, and on seed 25 it moved chi2 on top of the sphere by -4 to +12
+    # over five fresh meshes of the located sphere (2026-11-29), about its cost (ln N, 7). One CI run, on
+    # a fresh mesh of the sphere, found no single loser (its message was cut short; most likely the slip
+    # lowered chi2 by more than its cost, and then the pattern match decides). The sphere's mesh is
+    # committed since; on it the slip raises chi2 by 6.
     from dataclasses import replace
 
-    from app.core.diagnose import _tie_break
+    from app.core.diagnose import _tie_break, choose_verdict
 
     tied = [replace(x, score=100.0, material=True) for x in (d.candidate("probe-slip"), c)]
     tb = _tie_break(tied, d.baseline.problem, d.tracked, d.noise, 200, lambda s: None, None)
-    assert tb.winner == "inclusion" and tb.yields["probe-slip"] and not tb.yields["inclusion"], \
-        (tb.to_json_dict(), d.lines())
+    why = (tb.yields, tb.joint.parameters, tb.joint.misfit["chi2"], tb.beside_chi2)
+    assert not tb.yields["inclusion"], why
+    assert choose_verdict(tied, tb) == "inclusion", why
     assert tb.joint.parameters[f"E_{c.inclusion['name']}_kPa"] > tb.joint.parameters["E_B_kPa"], tb.joint.parameters
 
 
