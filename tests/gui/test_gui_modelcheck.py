@@ -302,6 +302,42 @@ def test_identify_with_an_inclusion_locates_it(window, visco_experiment, qtbot, 
     assert "inclusion I at (10.0, 20.0, 22.0) mm" in panel.version_label.text(), panel.version_label.text()
 
 
+def test_refine_the_inclusion_makes_a_version(window, visco_experiment, qtbot, monkeypatch):
+    """The "Refine the inclusion's place" button is enabled only when the current
+    version has an inclusion; clicked, the check's search
+    (app.core.diagnose.refine_inclusion, stubbed here to say a sphere 2 mm to the
+    side fits better; the search itself is tested on data with a hidden
+    inclusion in tests/core/test_diagnose.py) is followed by meshing the sphere
+    there and refitting: a new version, shown in the history."""
+    import app.core.diagnose as dg
+
+    monkeypatch.setattr(dg, "locate_inclusion",
+                        lambda exp, effects, **kw: {"name": "I", "center_mm": [10.0, 20.0, 22.0], "radius_mm": 3.0})
+    searched = []
+
+    def search(problem, params, tracked, noise, **kw):
+        searched.append(dict(problem.inclusion))
+        moved = dict(problem.inclusion, center_mm=[12.0, 20.0, 22.0])
+        return [dg.InclusionTrial(dict(problem.inclusion), 100.0, dict(params), {}),
+                dg.InclusionTrial(moved, 50.0, dict(params), {})]
+
+    monkeypatch.setattr(dg, "refine_inclusion", search)
+    panel = _prepare(window, visco_experiment)
+    _click_and_wait(qtbot, panel, panel.identify_button)
+    assert not panel.refine_button.isEnabled()  # the baseline has no inclusion
+    panel.identify_boxes["inclusion"].setChecked(True)
+    _click_and_wait(qtbot, panel, panel.identify_button)
+    assert panel.refine_button.isEnabled(), panel.state.text()
+    _click_and_wait(qtbot, panel, panel.refine_button)
+    assert not window.error_boxes, [b.informativeText() for b in window.error_boxes]
+    h = panel.model.history
+    v = h.current_version
+    assert searched and searched[0]["center_mm"] == [10.0, 20.0, 22.0]
+    assert len(h) == 3 and v.note == "refined the inclusion's place" and v.inclusion["center_mm"] == [12.0, 20.0, 22.0]
+    assert panel.tabs.currentIndex() == 2 and panel.history_table.rowCount() == 3
+    assert "refined the inclusion's place" in panel.state.text(), panel.state.text()
+
+
 def test_cancel_an_identification(window, visco_experiment, qtbot):
     panel = _prepare(window, visco_experiment)
     qtbot.mouseClick(panel.identify_button, Qt.LeftButton)

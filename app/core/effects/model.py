@@ -74,6 +74,14 @@ def spread_marks(marks, n: int) -> list[float]:
     return [marks[i] for i in sorted(picked)]
 
 
+def _same_sphere(a: dict | None, b: dict | None) -> bool:
+    """Whether two inclusions (name, center_mm, radius_mm; or None) are the same sphere."""
+    if a is None or b is None:
+        return a is b
+    return (a["name"] == b["name"] and float(a["radius_mm"]) == float(b["radius_mm"])
+            and [float(v) for v in a["center_mm"]] == [float(v) for v in b["center_mm"]])
+
+
 class EffectProblem(Problem):
     """A :class:`Problem` with effects. Build with :meth:`from_experiment`."""
 
@@ -120,7 +128,8 @@ class EffectProblem(Problem):
         frames = chosen_frames(exp, frames, say)
         nu = check_poisson(nu)
         check_roi(exp, roi_px)
-        if mesh is None and base is not None and base.mesh.region_names == exp.specimen.region_names:
+        if (mesh is None and base is not None and base.mesh.region_names == exp.specimen.region_names
+                and _same_sphere(base.inclusion, inclusion)):  # an inclusion elsewhere needs its own mesh
             mesh = base.mesh
         if mesh is None:
             mesh = specimen_mesh(exp, mesh_settings, progress=say, cancel=cancel)

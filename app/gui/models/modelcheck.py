@@ -36,7 +36,7 @@ class Snapshot:
     comparison: Any = None  # app.core.compare.Comparison of the current version
     diagnosis: Any = None  # app.core.diagnose.Diagnosis (the last one)
     diagnosed_version: int | None = None  # the version the diagnosis was made for
-    action: str = ""  # "identify" | "diagnose" | "add" | "revert"
+    action: str = ""  # "identify" | "diagnose" | "add" | "refine" | "revert"
     message: str = ""  # one line for the status bar and the log
 
 
@@ -168,6 +168,24 @@ class ModelCheckModel:
             if v.warning:
                 message += f". Warning: {v.warning}"
             return (check, inputs, Snapshot(check.history, cmp, d, dv, "add", message))
+
+        return work
+
+    def refine_work(self) -> Work:
+        """Move and resize the current version's inclusion where it fits best (a new version)."""
+        check, prev, inputs = self._need_check(), self.snapshot, self.inputs
+        if "inclusion" not in self.current_effects:
+            raise ElastoidError("the current version has no inclusion to refine: add one first")
+
+        def work(progress, cancel):
+            v = check.refine_inclusion(progress=progress, cancel=cancel)
+            progress("comparing the model with the measurements")
+            cmp = check.compare()
+            message = f"refined the inclusion's place: version {v.index}, {_errors_text(v.misfit)}"
+            if v.warning:
+                message += f". Warning: {v.warning}"
+            return (check, inputs, Snapshot(check.history, cmp, prev.diagnosis, prev.diagnosed_version,
+                                            "refine", message))
 
         return work
 

@@ -49,7 +49,7 @@ MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
 SUSPECT = "#9e9e9e"  # a difference at a block that disagrees with its neighbours
 VERDICT_BG = "#fff3c4"
 ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting",
-           "restore": "Restoring the saved model check"}
+           "refine": "Refining the inclusion's place", "restore": "Restoring the saved model check"}
 
 
 def _item(text: str, *, bold: bool = False, tip: str = "", align=None) -> QTableWidgetItem:
@@ -387,6 +387,12 @@ class ModelCheckPanel(Panel):
                                       "(later versions are kept, to compare)")
         self.revert_button.clicked.connect(self.revert_selected)
         row.addWidget(self.revert_button)
+        self.refine_button = QPushButton("Refine the inclusion's place")
+        self.refine_button.setToolTip("For a version with an inclusion: tries the sphere a little moved and "
+                                      "resized, each on the current mesh,\nand makes the best of them, meshed, a "
+                                      "new version (about 2 minutes at the paper's size)")
+        self.refine_button.clicked.connect(self.refine)
+        row.addWidget(self.refine_button)
         row.addWidget(hint("\u25b6 marks the current version; reverting keeps the later ones."))
         row.addStretch(1)
         tl.addLayout(row)
@@ -501,6 +507,7 @@ class ModelCheckPanel(Panel):
         self.revert_button.setEnabled(bool(free and h is not None and not stale and hsel is not None
                                            and hsel != h.current))
         self.compare_button.setEnabled(h is not None and len(h) >= 2)
+        self.refine_button.setEnabled(bool(free and not stale and "inclusion" in cur))
         if other_lock:
             self.state.setText(f"Waiting: {s.locked_by}.")
 
@@ -559,6 +566,9 @@ class ModelCheckPanel(Panel):
     def revert(self, index: int) -> None:
         self._start("revert", lambda: self.model.revert_work(int(index)))
 
+    def refine(self) -> None:
+        self._start("refine", self.model.refine_work)
+
     def revert_selected(self) -> None:
         i = self.selected_version()
         if i is not None:
@@ -609,6 +619,7 @@ class ModelCheckPanel(Panel):
         log.info("model check: %s", {"identify": f"identify with {', '.join(self.chosen_effects()) or 'no effect'}",
                                      "diagnose": f"diagnose, candidates {', '.join(self.chosen_candidates())}",
                                      "add": "add an effect", "revert": "revert",
+                                     "refine": "refine the inclusion's place",
                                      "restore": "restore the saved versions"}[action])
         self._refresh_enabled()
         self.task.start()
@@ -632,7 +643,7 @@ class ModelCheckPanel(Panel):
         log.info("model check: %s (%.1f s)", snap.message, secs)
         if snap.action == "diagnose":
             self.tabs.setCurrentIndex(1)
-        elif snap.action == "add":
+        elif snap.action in ("add", "refine"):
             self.tabs.setCurrentIndex(2)
         elif snap.action == "restore":
             self.tabs.setCurrentIndex(2)
