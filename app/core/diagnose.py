@@ -904,7 +904,8 @@ def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, ma
     k = list(mesh.region_names).index(inc["name"])
     described = tuple(r for r in exp.specimen.regions if r.name != inc["name"])
     centroids = mesh.points_mm[mesh.tets].mean(axis=1)
-    host = paint_labels(centroids, described)
+    # each tet's described region, as the mesh numbers its regions
+    host = np.array([mesh.region_names.index(r.name) for r in described])[paint_labels(centroids, described)]
     size = np.asarray(exp.specimen.size_mm, float)
     y = float(inc["center_mm"][1])
     trials: list[InclusionTrial] = []
