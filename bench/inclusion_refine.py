@@ -9,9 +9,9 @@ version's mesh, the best then meshed as a region and refitted). Prints each
 trial, then the versions' errors and the time.
 
 With --fresh-meshes, the search that came first: every trial sphere meshed
-anew (fTetWild) and fitted as the diagnosis' candidate is, steps of 2% of the
-smallest specimen side in x and z and a factor 1.15 on the radius, halved
-when no neighbour is better. A fresh mesh moves chi2 by itself, so that search
+anew (fTetWild) and fitted as the diagnosis' candidate is, by the same compass
+search (diagnose.compass_search: steps of 2% of the smallest specimen side in
+x and z and a factor 1.15 on the radius, halved when no neighbour is better). A fresh mesh moves chi2 by itself, so that search
 follows each mesh's error as well as the sphere (docs/model-check.md, "The
 inclusion locator"). With --truth, the hidden sphere of the experiment's
 truth.toml is also meshed and fitted the way the candidate is.
@@ -35,9 +35,7 @@ def main() -> None:
     if not a.fresh_meshes:
         return same_mesh(a)
 
-    import numpy as np
-
-    from app.core.diagnose import _fitted, current_model, diagnose
+    from app.core.diagnose import REFINE_STEP, _fitted, compass_search, current_model, diagnose
     from app.core.experiment import read_experiment
     from app.core.simulate import read_truth
 
@@ -70,24 +68,17 @@ def main() -> None:
         return m["chi2"]
 
     x, _, z = c.inclusion["center_mm"]
-    r = float(c.inclusion["radius_mm"])
     print(f"{'':<10} {'centre (x, z) mm':>16} {'radius':>8}")
-    best = fit(x, z, r, "located")
-    step, fac = 0.02 * min(exp.specimen.size_mm), 1.15
-    n = 1
-    while n < a.trials and step >= 0.4:
-        moved = False
-        for dx, dz, fr in ((step, 0, 1), (-step, 0, 1), (0, step, 1), (0, -step, 1), (0, 0, fac), (0, 0, 1 / fac)):
-            if n >= a.trials:
-                break
-            n += 1
-            v = fit(x + dx, z + dz, r * fr, f"trial {n}")
-            if v < best - 1e-6:
-                best, x, z, r, moved = v, x + dx, z + dz, r * fr, True
-                break
-        if not moved:
-            step, fac = step / 2, np.sqrt(fac)
-    print(f"best: ({x:.2f}, {z:.2f}) r {r:.2f}, chi2 {best:.1f}; {len(seen)} spheres in {time.perf_counter() - t0:.0f} s")
+    n = [0]  # spheres asked for, a repeat included
+
+    def value(x, z, r):
+        n[0] += 1
+        return fit(x, z, r, "located" if n[0] == 1 else f"trial {n[0]}")
+
+    x, z, r = compass_search(value, x, z, float(c.inclusion["radius_mm"]), REFINE_STEP * min(exp.specimen.size_mm),
+                             lambda: n[0] < a.trials)
+    print(f"best: ({x:.2f}, {z:.2f}) r {r:.2f}, chi2 {seen[(round(x, 2), round(z, 2), round(r, 2))]:.1f}; "
+          f"{len(seen)} spheres in {time.perf_counter() - t0:.0f} s")
     if a.truth:
         h = read_truth(exp.path)["hidden_regions"][0]
         fit(h["center_mm"][0], h["center_mm"][2], float(h["radius_mm"]), "truth")

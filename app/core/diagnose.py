@@ -756,11 +756,9 @@ def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=N
     """The problem for a model: effects on the experiment (with an added inclusion region, if any)."""
     effects = check(effects)
     if inclusion is not None:
-        from app.core.geometry import Region
+        from app.core.effects.inclusion import inclusion_region
 
-        region = Region(inclusion["name"], "sphere", center_mm=tuple(inclusion["center_mm"]),
-                        radius_mm=float(inclusion["radius_mm"]))
-        exp = replace(exp, specimen=exp.specimen.with_region(region))
+        exp = replace(exp, specimen=exp.specimen.with_region(inclusion_region(inclusion)))
         if mesh_settings is None:
             mesh_settings = located_inclusion_settings(exp)
     return EffectProblem.from_experiment(exp, effects=effects, mesh_settings=mesh_settings, base=base,
@@ -870,6 +868,28 @@ REFINE_RADIUS_FACTOR = 1.15
 REFINE_MIN_STEP_MM = 0.4
 
 
+def compass_search(value, x: float, z: float, r: float, step: float, more) -> tuple[float, float, float]:
+    """A compass search of ``value(x, z, r)`` (lower is better) from (x, z, r): the
+    centre moved by ``step`` in x, then z, then the radius scaled by
+    REFINE_RADIUS_FACTOR; the first neighbour that is better is taken, and when
+    none is, the step halves (the factor to its square root), down to
+    REFINE_MIN_STEP_MM. ``more()`` says whether another value may be asked for.
+    Returns the best (x, z, r)."""
+    best, factor = value(x, z, r), REFINE_RADIUS_FACTOR
+    while more() and step >= REFINE_MIN_STEP_MM:
+        for dx, dz, f in ((step, 0, 1), (-step, 0, 1), (0, step, 1), (0, -step, 1), (0, 0, factor),
+                          (0, 0, 1 / factor)):
+            if not more():
+                break
+            v = value(x + dx, z + dz, r * f)
+            if v < best:
+                best, x, z, r = v, x + dx, z + dz, r * f
+                break
+        else:
+            step, factor = step / 2, math.sqrt(factor)
+    return x, z, r
+
+
 @dataclass
 class InclusionTrial:
     """One sphere of refine_inclusion's search, fitted on the current model's mesh."""
@@ -898,7 +918,7 @@ def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, ma
         raise ElastoidError("refining the inclusion needs a model with one (add the inclusion effect first)")
     if "hyperelastic" in problem.effects:
         raise ElastoidError("the inclusion is refined on a linear model: refine it before adding hyperelastic")
-    from app.core.geometry import Region
+    from app.core.effects.inclusion import inclusion_region
 
     mesh, exp = problem.mesh, problem.exp
     k = list(mesh.region_names).index(inc["name"])
@@ -922,10 +942,8 @@ def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, ma
         if key[2] < 0.5 or not inside.any():
             tried[key] = math.inf
             return math.inf
-        region = Region(inc["name"], "sphere", center_mm=tuple(sphere["center_mm"]), radius_mm=key[2])
         tp = EffectProblem.from_experiment(
-            replace(exp, specimen=replace(exp.specimen, regions=described).with_region(region)),
-            effects=problem.effects, mesh=replace(mesh, labels=np.where(inside, k, host).astype(mesh.labels.dtype)),
+            replace(exp, specimen=exp.specimen.with_region(inclusion_region(sphere))), effects=problem.effects, mesh=replace(mesh, labels=np.where(inside, k, host).astype(mesh.labels.dtype)),
             frames=problem.frames, roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind, inclusion=sphere,
             near_kPa=problem.moduli(params), preconditioner=problem.rm, cancel=cancel)
         try:
@@ -940,20 +958,8 @@ def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, ma
         return trials[-1].chi2
 
     x, _, z = (float(v) for v in inc["center_mm"])
-    r = float(inc["radius_mm"])
-    best = trial(x, z, r)
-    step, factor = REFINE_STEP * float(size.min()), REFINE_RADIUS_FACTOR
-    while len(trials) < max_trials and step >= REFINE_MIN_STEP_MM:
-        for dx, dz, f in ((step, 0, 1), (-step, 0, 1), (0, step, 1), (0, -step, 1), (0, 0, factor),
-                          (0, 0, 1 / factor)):
-            if len(trials) >= max_trials:
-                break
-            v = trial(x + dx, z + dz, r * f)
-            if v < best:
-                best, x, z, r = v, x + dx, z + dz, r * f
-                break
-        else:
-            step, factor = step / 2, math.sqrt(factor)
+    compass_search(trial, x, z, float(inc["radius_mm"]), REFINE_STEP * float(size.min()),
+                   lambda: len(trials) < max_trials)
     return trials
 
 

@@ -153,12 +153,11 @@ def assert_mesh_committed(exp, inclusion: dict | None = None) -> None:
     hidden-inclusion test on a fresh mesh of it for a day, 2026-11-29)."""
     from dataclasses import replace
 
+    from app.core.effects.inclusion import inclusion_region
     from app.core.mesh import _mesh_key
 
     if inclusion is not None:
-        region = Region(inclusion["name"], "sphere", center_mm=tuple(inclusion["center_mm"]),
-                        radius_mm=float(inclusion["radius_mm"]))
-        exp = replace(exp, specimen=exp.specimen.with_region(region))
+        exp = replace(exp, specimen=exp.specimen.with_region(inclusion_region(inclusion)))
     key = _mesh_key(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions, DIAGNOSE_ID_MESH)
     meshes = Path(__file__).resolve().parents[1] / "data" / "meshes"
     assert (meshes / f"{key}.npz").is_file(), (

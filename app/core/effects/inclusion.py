@@ -92,6 +92,12 @@ def candidate_spheres(lo, hi, y: float, size, radii_mm, step: float, width: floa
     return list(spheres.values())
 
 
+def inclusion_region(inclusion: dict) -> Region:
+    """The sphere region of an inclusion given as name, center_mm and radius_mm."""
+    return Region(inclusion["name"], "sphere", center_mm=tuple(inclusion["center_mm"]),
+                  radius_mm=float(inclusion["radius_mm"]))
+
+
 def new_region_name(existing) -> str:
     for name in ("I", "I2", "I3", "I4", "I5"):
         if name not in existing:
