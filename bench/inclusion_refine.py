@@ -96,8 +96,9 @@ def same_mesh(a) -> None:
     print(f"diagnosis: {d.candidate('inclusion').evidence}")
     mc.add("inclusion")
     t1 = time.perf_counter()
-    mc.refine_inclusion(max_trials=a.trials, progress=lambda s: print("  " + s, flush=True))
+    refined = mc.refine_inclusion(max_trials=a.trials, progress=lambda s: print("  " + s, flush=True))
     t2 = time.perf_counter()
+    print(f"warning: {refined.warning or 'none'}")
     print(f"\n{'version':<34} {'sphere':>34} {'chi2':>9} {'beyond the noise (px)':>22}  moduli (kPa)")
     for v in mc.history.versions:
         sph = (f"({', '.join(f'{c:.1f}' for c in v.inclusion['center_mm'])}) r {v.inclusion['radius_mm']:.2f}"

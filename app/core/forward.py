@@ -228,6 +228,15 @@ class ReducedModel:
             self._prec = preconditioner(self._matrix(theta))
             self.n_full_solves += 1
 
+    def factorize(self, theta) -> bool:
+        """Make sure a factorization (its own, or a live borrowed one) is held, one of
+        the stiffness at ``theta`` when one has to be made; other models may then
+        borrow it. Returns whether it had to be made (its holder may want to
+        :meth:`release` it after)."""
+        had = self._prec is not None and self._prec.alive
+        self._ensure_prec(np.asarray(theta, float))
+        return not had
+
     def borrow_preconditioner(self, other: "ReducedModel") -> bool:
         """Enrich with ``other``'s factorized stiffness (a model on the same free
         dofs) instead of factorizing one's own, until :meth:`release`, which drops

@@ -110,16 +110,18 @@ class EffectProblem(Problem):
                         base: Problem | None = None,
                         inclusion: dict | None = None, progress: Callable[[str], None] | None = None,
                         cancel: threading.Event | None = None, near_kPa=None,
-                        preconditioner: ReducedModel | None = None, **_ignored) -> "EffectProblem":
+                        preconditioner: ReducedModel | None = None, rom_tol: float | None = None,
+                        near_factor: float = 3.0, **_ignored) -> "EffectProblem":
         """Mesh, assemble and train what the effects need. ``base``: a problem on the
         same mesh whose FE model and reduced model are reused when the effects
         leave them unchanged (viscoelastic, hyperelastic). ``near_kPa``: moduli the
         fits will start from (a diagnosis candidate's refit); a new reduced model
         is then trained on ratios within a factor 3 of theirs instead of the
-        whole range (it still enriches itself wherever a fit goes).
-        ``preconditioner``: a reduced model on the same dofs whose factorization a
-        new reduced model borrows for its training
-        (:meth:`ReducedModel.borrow_preconditioner`)."""
+        whole range (it still enriches itself wherever a fit goes); ``near_factor``
+        sets that factor. ``preconditioner``: a reduced model on the same dofs whose
+        factorization a new reduced model borrows for its training
+        (:meth:`ReducedModel.borrow_preconditioner`). ``rom_tol``: the new reduced
+        model's relative residual tolerance (ReducedModel's default unless given)."""
         say = progress or (lambda s: None)
         effects = check(effects)
         if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
@@ -152,13 +154,14 @@ class EffectProblem(Problem):
             say("training the reduced model")
             with single_threaded_blas():
                 near = None if near_kPa is None or len(near_kPa) != n else near_kPa
-                rm = LameReducedModel(fe, n, nu) if free_nu else ReducedModel(fe, region_terms(n, nu))
+                tol = {} if rom_tol is None else {"tol": rom_tol}
+                rm = LameReducedModel(fe, n, nu, **tol) if free_nu else ReducedModel(fe, region_terms(n, nu), **tol)
                 if preconditioner is not None:
                     rm.borrow_preconditioner(preconditioner)
                 if free_nu:
                     rm.train_default(near_kPa=near)
                 else:
-                    rm.train(training_set(n) if near is None else local_training_set(near))
+                    rm.train(training_set(n) if near is None else local_training_set(near, near_factor))
             say(f"reduced model: {rm.V.shape[1]} basis vectors")
         return cls(exp, mesh, fe, rm, effects=effects, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
                    force_weight=force_weight, bins=bins, inclusion=inclusion, similarity=similarity)
