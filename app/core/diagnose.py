@@ -57,6 +57,7 @@ from app.core.compare import neighbourhoods as _neighbourhoods
 from app.core.effects import EFFECT_IDS, INFO, check
 from app.core.effects.model import EffectProblem, FitResult, fit, fit_hyperelastic, identify_with_effects
 from app.core.errors import Cancelled, ElastoidError
+from app.core.fem import relabel
 from app.core.identify import force_noise_N
 from app.core.geometry import paint_labels
 from app.core.mesh import MeshSettings, auto_settings
@@ -992,9 +993,11 @@ def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, ma
         if key[2] < 0.5 or not inside.any():
             tried[key] = math.inf
             return math.inf
+        relabelled = replace(mesh, labels=np.where(inside, k, host).astype(mesh.labels.dtype))
         tp = EffectProblem.from_experiment(
-            replace(exp, specimen=exp.specimen.with_region(inclusion_region(sphere))), effects=problem.effects, mesh=replace(mesh, labels=np.where(inside, k, host).astype(mesh.labels.dtype)),
-            frames=problem.frames, roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind, inclusion=sphere,
+            replace(exp, specimen=exp.specimen.with_region(inclusion_region(sphere))), effects=problem.effects,
+            mesh=relabelled, operator=relabel(problem.fe.op, relabelled), frames=problem.frames,
+            roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind, inclusion=sphere,
             near_kPa=problem.moduli(params), preconditioner=problem.rm, cancel=cancel, rom_tol=REFINE_ROM_TOL,
             near_factor=REFINE_NEAR_FACTOR)
         try:

@@ -190,3 +190,35 @@ def test_element_entries_find_their_csr_positions_node_block_by_node_block():
     other[0, 1] = far[0]
     with pytest.raises(ValueError, match="not in the pattern"):
         element_positions(op.indptr, op.indices, other)
+
+
+def test_relabelled_operator_equals_the_relabelled_mesh_assembled_anew():
+    """relabel moves only the tets whose region changed; the result is the
+    assembly of the relabelled mesh, region by region and kind by kind (a third
+    region made, one region emptied), and it refuses another mesh."""
+    from dataclasses import replace
+
+    from app.core.fem import relabel
+
+    mesh = cube_mesh(3, size=(10.0, 10.0, 8.0))
+    centroids = mesh.points_mm[mesh.tets].mean(axis=1)
+    labels = (centroids[:, 0] > 5.0).astype(mesh.labels.dtype)
+    two = replace(mesh, labels=labels, region_names=("B", "A"))
+    op = assemble(p2_space(two))
+    ball = np.linalg.norm(centroids - [4.0, 5.0, 4.0], axis=1) < 3.0
+    three = replace(two, labels=np.where(ball, 2, labels).astype(labels.dtype), region_names=("B", "A", "I"))
+    assert 0 < ball.sum() < len(ball) and np.any(ball & (labels == 0)) and np.any(ball & (labels == 1))
+    new, ref = relabel(op, three), assemble(p2_space(three))
+    assert set(new.data) == set(ref.data) == {(r, k) for r in range(3) for k in ("mu", "lam")}
+    scale = max(np.abs(v).max() for v in ref.data.values())
+    for key in ref.data:
+        assert np.abs(new.data[key] - ref.data[key]).max() < 1e-12 * scale, key
+    assert np.array_equal(new.indptr, ref.indptr) and np.array_equal(new.indices, ref.indices)
+    assert np.array_equal(new.space.labels, three.labels) and new.space.mesh is three
+    assert np.array_equal(op.space.labels, labels)  # the operator relabelled is left as it was
+    emptied = relabel(op, replace(two, labels=np.ones_like(labels)))
+    assert set(emptied.data) == {(1, "mu"), (1, "lam")}
+    ones = assemble(p2_space(replace(two, labels=np.ones_like(labels))))
+    assert np.abs(emptied.data[(1, "mu")] - ones.data[(1, "mu")]).max() < 1e-12 * scale
+    with pytest.raises(ValueError, match="same nodes and tets"):
+        relabel(op, cube_mesh(2, size=(10.0, 10.0, 8.0)))

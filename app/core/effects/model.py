@@ -111,7 +111,7 @@ class EffectProblem(Problem):
                         inclusion: dict | None = None, progress: Callable[[str], None] | None = None,
                         cancel: threading.Event | None = None, near_kPa=None,
                         preconditioner: ReducedModel | None = None, rom_tol: float | None = None,
-                        near_factor: float = 3.0, **_ignored) -> "EffectProblem":
+                        near_factor: float = 3.0, operator=None, **_ignored) -> "EffectProblem":
         """Mesh, assemble and train what the effects need. ``base``: a problem on the
         same mesh whose FE model and reduced model are reused when the effects
         leave them unchanged (viscoelastic, hyperelastic). ``near_kPa``: moduli the
@@ -121,7 +121,9 @@ class EffectProblem(Problem):
         sets that factor. ``preconditioner``: a reduced model on the same dofs whose
         factorization a new reduced model borrows for its training
         (:meth:`ReducedModel.borrow_preconditioner`). ``rom_tol``: the new reduced
-        model's relative residual tolerance (ReducedModel's default unless given)."""
+        model's relative residual tolerance (ReducedModel's default unless given).
+        ``operator``: the stiffness terms of ``mesh``, already assembled (e.g.
+        :func:`app.core.fem.relabel` of a model on the same tets)."""
         say = progress or (lambda s: None)
         effects = check(effects)
         if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
@@ -141,7 +143,7 @@ class EffectProblem(Problem):
             fe = base.fe
         else:
             say("assembling the finite-element model")
-            op = base.fe.op if (base is not None and base.mesh is mesh) else None
+            op = base.fe.op if (base is not None and base.mesh is mesh) else operator
             fe = build_model(mesh, boundary, op=op)
         if cancel is not None and cancel.is_set():
             raise Cancelled("cancelled")
