@@ -188,6 +188,11 @@ def cmd_identify(args) -> int:
 
     effects = [e for e in (args.effects or "").split(",") if e]
     _check_effects(effects)
+    if args.refine_inclusion and "inclusion" not in effects:
+        raise ElastoidError("--refine-inclusion refines the inclusion effect's sphere: give --effects inclusion")
+    if args.refine_inclusion and (args.roi or args.frames):
+        raise ElastoidError("--refine-inclusion works on the experiment's ROI and frames, as the Model check "
+                            "does: leave out --roi and --frames")
     _check_json_dest(args.json)
     starts = _floats(args.starts, what="--starts")
     check_starts(starts, "--starts")
@@ -208,6 +213,14 @@ def cmd_identify(args) -> int:
                 t_locate = time.perf_counter()
                 inclusion = locate_inclusion(exp, effects, mesh_settings=settings, progress=bar.message, **options)
                 locate_seconds = round(time.perf_counter() - t_locate, 2)  # one figure for the JSON and the summary
+                if args.refine_inclusion:
+                    from app.core.diagnose import refine_located_inclusion
+
+                    t_refine = time.perf_counter()
+                    refinement = refine_located_inclusion(exp, effects, inclusion, mesh_settings=settings,
+                                                          nu=args.nu, progress=bar.message)
+                    refinement["seconds"] = round(time.perf_counter() - t_refine, 2)
+                    inclusion = refinement["inclusion"]
             problem = current_model(exp, effects, mesh_settings=settings, inclusion=inclusion, progress=bar.message,
                                     **options)
             result = identify_with_effects(problem, starts, progress=bar)
@@ -229,6 +242,13 @@ def cmd_identify(args) -> int:
                                  "radius_mm": inclusion["radius_mm"]}
         # the fit's ``seconds`` leave out the locating (a fit, the tracking, the scan and the mesh)
         payload["inclusion"] = {**inclusion, "locate_seconds": locate_seconds}
+        if args.refine_inclusion:
+            located = refinement["located"]
+            payload["inclusion"]["refinement"] = {
+                "refined": refinement["refined"], "located_center_mm": located["center_mm"],
+                "located_radius_mm": located["radius_mm"], "chi2_located": refinement["chi2_located"],
+                "chi2_refined": refinement["chi2_refined"], "note": refinement["note"],
+                "seconds": refinement["seconds"]}
     ref = exp.reference_moduli_kPa(args.nu)
     written = _write_json(args.json, payload) if args.json else True
     if args.json != "-":
@@ -236,8 +256,16 @@ def cmd_identify(args) -> int:
         if inclusion is not None:
             from app.core.effects.inclusion import place_text
 
-            print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
-                  f"{locate_seconds:.1f} s before the fit): centre {place_text(inclusion)}")
+            if args.refine_inclusion:
+                located = refinement["located"]
+                print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
+                      f"{locate_seconds:.1f} s before the fit): centre {place_text(located)}")
+                print(f"  {'refined' if refinement['refined'] else 'not refined'} in {refinement['seconds']:.1f} s"
+                      f"{': centre ' + place_text(inclusion) if refinement['refined'] else ''}; "
+                      f"{refinement['note']}")
+            else:
+                print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
+                      f"{locate_seconds:.1f} s before the fit): centre {place_text(inclusion)}")
         for name, val in result.parameters.items():
             region = name[2:-4] if name.startswith("E_") else ""
             extra = f"   (reference {ref[region]:.1f} kPa)" if region in ref else ""
@@ -410,6 +438,10 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--nu", type=_poisson, default=0.49, help="Poisson's ratio (default 0.49)")
     ip.add_argument("--mesh-edge-mm", type=_positive, help="element size far from the probe (default: automatic)")
     ip.add_argument("--probe-edge-mm", type=_positive, help="element size on the probe face (default: automatic)")
+    ip.add_argument("--refine-inclusion", action="store_true",
+                    help="with --effects inclusion: after locating the sphere, search its place and size as the "
+                         "Model check's 'Refine the inclusion's place' does, and fit with the refined sphere when "
+                         "it fits the measurements better (a minute or two at the paper's size)")
     ip.add_argument("--quiet", action="store_true", help="no progress line")
     ip.set_defaults(func=cmd_identify)
 

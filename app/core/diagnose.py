@@ -902,6 +902,11 @@ def compass_search(value, x: float, z: float, r: float, step: float, more) -> tu
     return x, z, r
 
 
+class RefinementRefused(ElastoidError):
+    """The search of the inclusion's place found none that fits clearly better
+    (:func:`refine_refusal`): the version stays as it is."""
+
+
 def refine_refusal(trials: list) -> str:
     """Why the search's trials (:func:`refine_inclusion`, the starting sphere
     first) give no new version, or an empty string: when no trial fits better than
@@ -921,24 +926,36 @@ def refine_refusal(trials: list) -> str:
     return ""
 
 
-def refine_warning(index: int, chi2_before: float, chi2_after: float, found: float) -> str:
-    """The warning of a refined inclusion's version (empty when none is due).
-    ``found``: the fall of chi2 the search found on version ``index``'s own mesh;
-    ``chi2_after``: the new version's, on the new mesh meshed about the sphere.
+def refine_doubt(chi2_before: float, chi2_after: float, found: float, before: str) -> str:
+    """Why a refined inclusion, meshed at its new place, is not shown to fit
+    better than ``before`` (a name: "version 1"), or an empty string.
+    ``found``: the fall of chi2 the search found on ``before``'s own mesh;
+    ``chi2_after``: the refined model's, on the new mesh meshed about the sphere.
     A mesh has an error of its own: a fresh fTetWild mesh of the same sphere moved
     chi2 by about a hundred at paper size and by tens on the test phantoms. When
     the new mesh keeps less than half of what the search found, that error is as
-    large as the gain, and the new place is not shown to fit better."""
+    large as the gain."""
     gained = chi2_before - chi2_after
     if gained < 0:
-        return (f"the inclusion's new place fits the measurements worse than version {index} on its own mesh "
-                f"(chi2 {chi2_after:,.0f} against {chi2_before:,.0f}); revert to version {index}")
+        return (f"the inclusion's new place fits the measurements worse than {before} on its own mesh "
+                f"(chi2 {chi2_after:,.0f} against {chi2_before:,.0f})")
     if gained < 0.5 * found:
         return (f"meshed at its new place, the inclusion gains chi2 {gained:,.0f} where the search found "
-                f"{found:,.0f} on version {index}'s mesh: the new mesh's own error is as large as the gain, so the "
-                f"new place is not shown to fit better; compare the two versions' error maps, and revert to "
-                f"version {index} unless this one's are better")
+                f"{found:,.0f} on {before}'s mesh: the new mesh's own error is as large as the gain, so the "
+                f"new place is not shown to fit better")
     return ""
+
+
+def refine_warning(index: int, chi2_before: float, chi2_after: float, found: float) -> str:
+    """The warning of a refined inclusion's version, made from version ``index``
+    (:func:`refine_doubt` with what to do; empty when none is due)."""
+    doubt = refine_doubt(chi2_before, chi2_after, found, f"version {index}")
+    if not doubt:
+        return ""
+    if chi2_after > chi2_before:
+        return f"{doubt}; revert to version {index}"
+    return (f"{doubt}; compare the two versions' error maps, and revert to version {index} unless this one's "
+            f"are better")
 
 
 @dataclass
@@ -1568,6 +1585,7 @@ class ModelCheck:
         self.last_diagnosis: Diagnosis | None = None
         self._diagnosed: int | None = None  # the version the last diagnosis was made for
         self._problems: dict[int, EffectProblem] = {}
+        self.last_search: list[InclusionTrial] = []  # the last refine_inclusion's trials, its start first
 
     @property
     def effects(self) -> tuple:
@@ -1731,9 +1749,10 @@ class ModelCheck:
         say("refining the inclusion's place and size (one fit per trial sphere)")
         trials = refine_inclusion(self.problem, v.parameters, self.tracked, noise, max_trials=max_trials,
                                   progress=say, cancel=cancel)
+        self.last_search = trials
         refusal = refine_refusal(trials)
         if refusal:
-            raise ElastoidError(refusal)
+            raise RefinementRefused(refusal)
         best = min(trials, key=lambda t: t.chi2)
         say(f"the best of {len(trials)}: ({', '.join(f'{c:.1f}' for c in best.inclusion['center_mm'])}) mm, "
             f"radius {best.inclusion['radius_mm']:.1f} mm; meshing it as a region")
@@ -1757,3 +1776,45 @@ class ModelCheck:
         if self.problem is not None and self.problem is not problem:
             self.problem.release(keep=problem)
         self.problem = problem
+
+
+def refine_located_inclusion(exp, effects, inclusion: dict, *, mesh_settings=None, nu: float = 0.49,
+                             max_trials: int = 16, progress=None, cancel=None) -> dict:
+    """The Model check's "Refine the inclusion's place" for a batch (``elastoid
+    identify --effects inclusion --refine-inclusion``): the model with the other
+    ``effects`` is identified (the speckle tracked at it), then with ``inclusion``
+    (as :func:`locate_inclusion` placed it), and :meth:`ModelCheck.refine_inclusion`
+    searches its place and size. A neo-Hookean model is refined without its
+    nonlinearity, as in the window. The refined sphere is taken only when its
+    version carries no warning (it fits better, and keeps most of what the search
+    found, on its own mesh); else the located one is kept, and ``note`` says why.
+
+    Returns {"inclusion": the sphere to use, "refined": whether it moved,
+    "located": ``inclusion``, "note", "chi2_located", "chi2_refined" (None when
+    the search made no version)}. Uses the experiment's ROI and frames, as the
+    Model check does."""
+    linear = tuple(e for e in check(effects) if e != "hyperelastic")
+    if "inclusion" not in linear:
+        raise ElastoidError("refining an inclusion needs the inclusion effect")
+    mc = ModelCheck(exp, mesh_settings=mesh_settings, nu=nu)
+    try:
+        mc.identify(tuple(e for e in linear if e != "inclusion"), progress=progress, cancel=cancel)
+        located = mc.identify(linear, inclusion=inclusion, progress=progress, cancel=cancel)
+        out = {"inclusion": inclusion, "refined": False, "located": inclusion,
+               "chi2_located": located.misfit["chi2"], "chi2_refined": None}
+        try:
+            v = mc.refine_inclusion(max_trials=max_trials, progress=progress, cancel=cancel)
+        except RefinementRefused as exc:
+            return {**out, "note": str(exc)}
+        out["chi2_refined"] = v.misfit["chi2"]
+        if v.warning:
+            trials = mc.last_search
+            found = trials[0].chi2 - min(t.chi2 for t in trials)
+            doubt = refine_doubt(located.misfit["chi2"], v.misfit["chi2"], found, "the located sphere")
+            return {**out, "note": f"the located sphere is kept: {doubt or v.warning}"}
+        return {**out, "inclusion": v.inclusion, "refined": True,
+                "note": f"the refined sphere fits the measurements better than the located one (chi2 "
+                        f"{v.misfit['chi2']:,.0f} against {located.misfit['chi2']:,.0f})"}
+    finally:
+        for problem in {id(p): p for p in (*mc._problems.values(), mc.problem) if p is not None}.values():
+            problem.release()
