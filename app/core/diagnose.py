@@ -874,10 +874,10 @@ REFINE_MIN_STEP_MM = 0.4
 # a factorization each), chi2 within 0.6 of those, moduli within 0.1%
 # (docs/model-check.md, "The inclusion locator")
 REFINE_NEAR_FACTOR = 1.5
+REFINE_ROM_TOL = 1e-5
 # a search that finds chi2 lower by less than this fraction makes no new version
 # (see refine_refusal)
 REFINE_MIN_FALL = 0.01
-REFINE_ROM_TOL = 1e-5
 
 
 def compass_search(value, x: float, z: float, r: float, step: float, more) -> tuple[float, float, float]:
@@ -922,7 +922,7 @@ def refine_refusal(trials: list) -> str:
         return (f"the inclusion already sits about where it fits best: the best of the {len(trials)} places and "
                 f"sizes tried, ({where}) mm with radius {best.inclusion['radius_mm']:.1f} mm, fits the "
                 f"measurements only by chi2 {found:,.1f} better (of {trials[0].chi2:,.0f}), less than a new mesh "
-                f"of the sphere alone would move it; the current version is kept")
+                f"of the sphere alone would move it")
     return ""
 
 
@@ -1805,7 +1805,7 @@ def refine_located_inclusion(exp, effects, inclusion: dict, *, mesh_settings=Non
         try:
             v = mc.refine_inclusion(max_trials=max_trials, progress=progress, cancel=cancel)
         except RefinementRefused as exc:
-            return {**out, "note": str(exc)}
+            return {**out, "note": f"the located sphere is kept: {exc}"}
         out["chi2_refined"] = v.misfit["chi2"]
         if v.warning:
             trials = mc.last_search

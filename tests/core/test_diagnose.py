@@ -803,6 +803,50 @@ def test_a_search_that_finds_less_than_a_mesh_moves_makes_no_version():
     assert refine_refusal(trials(2270.4, 2171.6, 1874.5)) == ""
 
 
+@pytest.mark.parametrize("outcome", ["refined", "worse", "little", "refused"])
+def test_a_batch_keeps_the_located_inclusion_unless_the_refined_one_fits_better(monkeypatch, outcome):
+    """refine_located_inclusion (identify --refine-inclusion) on the Model check's
+    steps, stubbed here (they are tested on data above): the refined sphere is
+    used only when its version has no warning, and the note says why not, in
+    the batch's words (the located sphere, not a version number)."""
+    import app.core.diagnose as dg
+
+    located = {"name": "I", "center_mm": [24.7, 20.0, 13.8], "radius_mm": 4.5}
+    moved = dict(located, center_mm=[25.3, 20.0, 14.4], radius_mm=3.9)
+    identified = []
+
+    def identify(self, effects=(), *, inclusion=None, **kw):
+        identified.append((tuple(effects), inclusion))
+        return dg.ModelVersion(len(identified) - 1, tuple(effects), {}, {}, {"chi2": 787.0}, inclusion=inclusion)
+
+    def refine(self, **kw):
+        self.last_search = [dg.InclusionTrial(located, 783.0, {}, {}), dg.InclusionTrial(moved, 760.0, {}, {})]
+        if outcome == "refused":
+            raise dg.RefinementRefused("the inclusion already sits about where it fits best")
+        chi2 = {"refined": 774.0, "worse": 790.0, "little": 780.0}[outcome]
+        warning = dg.refine_warning(1, 787.0, chi2, 23.0)
+        return dg.ModelVersion(2, ("inclusion",), {}, {}, {"chi2": chi2}, inclusion=moved, warning=warning)
+
+    monkeypatch.setattr(dg.ModelCheck, "identify", identify)
+    monkeypatch.setattr(dg.ModelCheck, "refine_inclusion", refine)
+    out = dg.refine_located_inclusion(None, ("inclusion", "hyperelastic"), located)
+    assert identified == [((), None), (("inclusion",), located)]  # refined without the nonlinearity
+    assert out["located"] == located and out["chi2_located"] == 787.0
+    if outcome == "refined":
+        assert out["refined"] and out["inclusion"] == moved and out["chi2_refined"] == 774.0
+        assert out["note"] == "the refined sphere fits the measurements better than the located one (chi2 774 " \
+                              "against 787)", out
+        return
+    assert not out["refined"] and out["inclusion"] == located, out
+    assert out["note"].startswith("the located sphere is kept: "), out
+    assert "version" not in out["note"], out
+    words = {"worse": "fits the measurements worse than the located sphere on its own mesh (chi2 790 against 787)",
+             "little": "gains chi2 7 where the search found 23 on the located sphere's mesh",
+             "refused": "already sits about where it fits best"}[outcome]
+    assert words in out["note"], out
+    assert out["chi2_refined"] == (None if outcome == "refused" else {"worse": 790.0, "little": 780.0}[outcome])
+
+
 def test_the_scan_tries_spheres_partly_out_of_view_and_no_wider_than_the_field_allows():
     """The paper-size field (tracked x 28.7-60.7 mm, z 63.6-92.4 mm in a 90 x 90 x 96
     mm block, steps of 3.6 mm): centres reach a radius beyond the field (the hidden
