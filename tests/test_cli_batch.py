@@ -211,19 +211,22 @@ def test_identify_with_the_inclusion_effect_locates_meshes_and_fits_it(tmp_path_
 def test_identify_refines_the_located_inclusion_when_asked(tmp_path_factory, monkeypatch, capsys):
     """`identify --effects inclusion --refine-inclusion`: the located sphere's
     place and size are searched as the Model check's refinement does, and the fit
-    uses the refined sphere only when it fits the measurements better on its own
-    mesh; the JSON says which, and why. Seed 13's hidden sphere, on the tests'
-    identification mesh (the meshes committed). Measured (2026-11-29): located
-    at (24.7, 20, 13.8) r 4.5, 1.3 mm from the truth; refined to (25.3, 20, 14.4)
-    r 3.9, 0.8 mm off, chi2 787 -> 774; then fitted: B 14.70 (15), A 41.3 (45),
-    the sphere 80 kPa (60). About a minute (57 s of refining)."""
+    uses a refined sphere only when it is shown to fit the measurements better;
+    the JSON says which, and why. Seed 13's hidden sphere, on the tests'
+    identification mesh (the located sphere's mesh committed): located at (24.7,
+    20, 13.8) r 4.5, 1.3 mm from the truth; the search's best, (25.3, 20, 14.4) r
+    3.9, fits only 2.9% better, under what a new mesh moves, so the located
+    sphere is kept and nothing new is meshed (measured 2026-11-29: when it was
+    used, E_A came out 41.3 kPa instead of 43.6, the truth 45). About a minute.
+    Which outcome the batch takes when the refinement is used is tested in
+    tests/core/test_diagnose.py, with the Model check's steps stubbed."""
     from app import cli
     from app.core.simulate import read_truth
     from tests.core import synthetic
 
     monkeypatch.setattr(cli, "_mesh_settings", lambda args, exp: synthetic.DIAGNOSE_ID_MESH)
     exp = synthetic.diagnose_experiment(tmp_path_factory, "inclusion")
-    hidden = read_truth(exp.path)["hidden_regions"][0]
+    truth = read_truth(exp.path)
     dest = exp.path.parent / "result.json"
     assert main(["identify", str(exp.path), "--effects", "inclusion", "--refine-inclusion", "--starts", "10,30",
                  "--json", str(dest), "--quiet"]) == 0
@@ -232,20 +235,16 @@ def test_identify_refines_the_located_inclusion_when_asked(tmp_path_factory, mon
     ref = inc["refinement"]
     assert set(ref) == {"refined", "located_center_mm", "located_radius_mm", "chi2_located", "chi2_refined",
                         "note", "seconds"}, ref
-    synthetic.assert_mesh_committed(exp, inc)
-    assert ref["refined"] and ref["chi2_refined"] < ref["chi2_located"] - 5.0, ref
-    assert ref["note"].startswith("the refined sphere fits the measurements better than the located one"), ref
+    assert not ref["refined"] and ref["chi2_refined"] is None and ref["seconds"] > 0, ref
+    assert ref["note"].startswith("the located sphere is kept: the inclusion already sits about where it fits "
+                                  "best"), ref
+    assert inc["center_mm"] == ref["located_center_mm"] and inc["radius_mm"] == ref["located_radius_mm"]
+    assert np.linalg.norm(np.subtract(inc["center_mm"], truth["hidden_regions"][0]["center_mm"])) < 1.5, inc
     p = result["parameters"]
     assert p["center_mm"] == inc["center_mm"] and p["radius_mm"] == inc["radius_mm"]
-    off = {k: np.linalg.norm(np.subtract(c, hidden["center_mm"]))
-           for k, c in (("located", ref["located_center_mm"]), ("refined", inc["center_mm"]))}
-    assert off["refined"] < off["located"] and off["refined"] < 1.5, (off, ref)
-    for region, truth in (("B", 15.0), ("A", 45.0)):
-        assert p[f"E_{region}_kPa"] == pytest.approx(truth, rel=0.10), p
-    assert p["E_I_kPa"] > 2.0 * p["E_B_kPa"], p
-    assert "  inclusion I (not in the experiment, located from the misfit in " in printed, printed
-    assert re.search(r"\n  refined in \d+\.\d s: centre \(25\.3, 20\.0, 14\.4\) mm, radius 3\.9 mm; the refined sphere "
-                     r"fits the measurements better", printed), printed
+    for region in ("B", "A"):
+        assert p[f"E_{region}_kPa"] == pytest.approx(truth["moduli_kPa"][region], rel=0.05), p
+    assert re.search(r"\n  not refined in \d+\.\d s; the located sphere is kept: ", printed), printed
 
 
 @pytest.mark.parametrize("options,option,words", [

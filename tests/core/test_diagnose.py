@@ -788,8 +788,9 @@ def test_a_search_that_finds_less_than_a_mesh_moves_makes_no_version():
     """On the paper-size seed with its inclusion out of view (2026-11-29), the
     search's 16 trials found chi2 1,869.9 against the start's 1,873.1; meshed, that
     sphere fitted worse (1,940): a fall of 3 is under what a new mesh moves
-    (1.3-5.7% of chi2 there). Refused, with the reason; in view, the 396 found
-    (2,270.4 -> 1,874.5) goes on."""
+    (1.3-5.8% of chi2 there). Refused, with the reason; so is seed 13's find of
+    23 (2.9%, 782.8 -> 760.1), which meshed anew kept 13 and moved E_A from -3%
+    to -9%; in view, the 396 found (2,270.4 -> 1,874.5) goes on."""
     from app.core.diagnose import InclusionTrial, refine_refusal
 
     def trials(*chi2):
@@ -801,6 +802,8 @@ def test_a_search_that_finds_less_than_a_mesh_moves_makes_no_version():
     assert "(19.5, 45.0, 74.4) mm with radius 5.4 mm" in why and "chi2 3.2 better (of 1,873)" in why, why
     assert "already sits where it fits best among the 2" in refine_refusal(trials(1873.1, 1884.6))
     assert refine_refusal(trials(2270.4, 2171.6, 1874.5)) == ""
+    assert "only by chi2 22.7 better (of 783)" in refine_refusal(trials(782.8, 760.1))
+    assert refine_refusal(trials(782.8, 757.0)) == ""  # 3.3%
 
 
 @pytest.mark.parametrize("outcome", ["refined", "worse", "little", "refused"])
