@@ -441,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--refine-inclusion", action="store_true",
                     help="with --effects inclusion: after locating the sphere, search its place and size as the "
                          "Model check's 'Refine the inclusion's place' does, and fit with the refined sphere when "
-                         "it fits the measurements better (a minute or two at the paper's size)")
+                         "it fits the measurements better (two to three minutes at the paper's size)")
     ip.add_argument("--quiet", action="store_true", help="no progress line")
     ip.set_defaults(func=cmd_identify)
 

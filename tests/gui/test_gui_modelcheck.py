@@ -308,7 +308,9 @@ def test_refine_the_inclusion_makes_a_version(window, visco_experiment, qtbot, m
     (app.core.diagnose.refine_inclusion, stubbed here to say a sphere 2 mm to the
     side fits better; the search itself is tested on data with a hidden
     inclusion in tests/core/test_diagnose.py) is followed by meshing the sphere
-    there and refitting: a new version, shown in the history."""
+    there and refitting: a new version, shown in the history. A search that
+    finds too little is said in the state line, not as an error, and adds no
+    version."""
     import app.core.diagnose as dg
 
     monkeypatch.setattr(dg, "locate_inclusion",
@@ -336,6 +338,16 @@ def test_refine_the_inclusion_makes_a_version(window, visco_experiment, qtbot, m
     assert len(h) == 3 and v.note == "refined the inclusion's place" and v.inclusion["center_mm"] == [12.0, 20.0, 22.0]
     assert panel.tabs.currentIndex() == 2 and panel.history_table.rowCount() == 3
     assert "refined the inclusion's place" in panel.state.text(), panel.state.text()
+    # a search that finds too little to show through a new mesh: said as an answer, the versions kept
+    monkeypatch.setattr(dg, "refine_inclusion", lambda problem, params, tracked, noise, **kw: [
+        dg.InclusionTrial(dict(problem.inclusion), 100.0, dict(params), {}),
+        dg.InclusionTrial(dict(problem.inclusion, radius_mm=3.5), 99.0, dict(params), {})])
+    _click_and_wait(qtbot, panel, panel.refine_button)
+    assert not window.error_boxes, [b.informativeText() for b in window.error_boxes]
+    assert "not refined: the inclusion already sits about where it fits best" in panel.state.text(), \
+        panel.state.text()
+    assert len(panel.model.history) == 3 and panel.model.history.current_version is v
+    assert panel.history_table.rowCount() == 3 and panel.refine_button.isEnabled()
 
 
 def test_cancel_an_identification(window, visco_experiment, qtbot):

@@ -178,7 +178,13 @@ class ModelCheckModel:
             raise ElastoidError("the current version has no inclusion to refine: add one first")
 
         def work(progress, cancel):
-            v = check.refine_inclusion(progress=progress, cancel=cancel)
+            from app.core.diagnose import RefinementRefused
+
+            try:
+                v = check.refine_inclusion(progress=progress, cancel=cancel)
+            except RefinementRefused as exc:  # an answer, not a failure: the version stays as it is
+                return (check, inputs, Snapshot(check.history, prev.comparison, prev.diagnosis,
+                                                prev.diagnosed_version, "refine", f"not refined: {exc}"))
             progress("comparing the model with the measurements")
             cmp = check.compare()
             message = f"refined the inclusion's place: version {v.index}, {_errors_text(v.misfit)}"

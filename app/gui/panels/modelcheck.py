@@ -390,7 +390,7 @@ class ModelCheckPanel(Panel):
         self.refine_button = QPushButton("Refine the inclusion's place")
         self.refine_button.setToolTip("For a version with an inclusion: tries the sphere a little moved and "
                                       "resized, each on the current mesh,\nand makes the best of them, meshed, a "
-                                      "new version (about a minute at the paper's size)")
+                                      "new version (one to two minutes at the paper's size)")
         self.refine_button.clicked.connect(self.refine)
         row.addWidget(self.refine_button)
         row.addWidget(hint("\u25b6 marks the current version; reverting keeps the later ones."))
