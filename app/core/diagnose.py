@@ -982,15 +982,18 @@ def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, ma
     the moduli are refitted by maximum likelihood. One mesh for every trial keeps
     the mesh's own error out of the comparison (a fresh fTetWild mesh of the same
     sphere moved chi2 by about a hundred at paper size; docs/model-check.md, "The
-    inclusion locator"). Returns the trials in the order tried, the starting
-    sphere first; the best is min(trials, key=chi2)."""
+    inclusion locator"). Spheres that reach closer than WALL_GAP_MM to the
+    specimen's faces are not tried (as in the scan): on a blind paper-size
+    phantom the search otherwise pushed a sphere 10 mm deep up into the probe's
+    face, to fit the contact's misfit. Returns the trials in the order tried,
+    the starting sphere first; the best is min(trials, key=chi2)."""
     say = progress or (lambda s: None)
     inc = problem.inclusion
     if inc is None or "inclusion" not in problem.effects:
         raise ElastoidError("refining the inclusion needs a model with one (add the inclusion effect first)")
     if "hyperelastic" in problem.effects:
         raise ElastoidError("the inclusion is refined on a linear model: refine it before adding hyperelastic")
-    from app.core.effects.inclusion import inclusion_region
+    from app.core.effects.inclusion import inclusion_region, inside_specimen
 
     mesh, exp = problem.mesh, problem.exp
     k = list(mesh.region_names).index(inc["name"])
@@ -1011,7 +1014,7 @@ def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, ma
             raise Cancelled("refining the inclusion cancelled")
         sphere = {"name": inc["name"], "center_mm": [key[0], y, key[1]], "radius_mm": key[2]}
         inside = np.linalg.norm(centroids - np.array(sphere["center_mm"]), axis=1) < key[2]
-        if key[2] < 0.5 or not inside.any():
+        if key[2] < 0.5 or not inside.any() or not inside_specimen(sphere["center_mm"], key[2], size):
             tried[key] = math.inf
             return math.inf
         relabelled = replace(mesh, labels=np.where(inside, k, host).astype(mesh.labels.dtype))

@@ -755,6 +755,10 @@ def test_refining_an_inclusion_moves_it_to_where_the_data_put_it(tmp_path_factor
     synthetic.assert_mesh_committed(exp, v2.inclusion)
     assert v2.index == v1.index + 1 and v2.note == "refined the inclusion's place" and not v2.warning, v2
     assert sum(line.startswith("inclusion at") for line in said) >= 7, said  # trials reported as they go
+    from app.core.effects.inclusion import inside_specimen
+
+    assert all(inside_specimen(t.inclusion["center_mm"], t.inclusion["radius_mm"], exp.specimen.size_mm)
+               for t in mc.last_search), [t.inclusion for t in mc.last_search]
     moved = np.linalg.norm(np.array(v2.inclusion["center_mm"]) - c_true)
     assert moved < 1.5, (v2.inclusion, said)
     assert mc.problem.mesh is not mesh1  # meshed at its new place, not the old mesh reused
@@ -848,6 +852,16 @@ def test_a_batch_keeps_the_located_inclusion_unless_the_refined_one_fits_better(
              "refused": "already sits about where it fits best"}[outcome]
     assert words in out["note"], out
     assert out["chi2_refined"] == (None if outcome == "refused" else {"worse": 790.0, "little": 780.0}[outcome])
+
+
+def test_an_inclusion_keeps_inside_the_specimen():
+    from app.core.effects.inclusion import WALL_GAP_MM, inside_specimen
+
+    size = (90.0, 90.0, 96.0)
+    assert inside_specimen([45, 45, 84], 6.0, size)
+    assert inside_specimen([45, 45, 96 - 6.0 - WALL_GAP_MM], 6.0, size)  # at the gap exactly
+    assert not inside_specimen([30.5, 45, 95.5], 4.7, size)  # into the probe's face (a blind seed's search did)
+    assert not inside_specimen([3.0, 45, 50], 3.0, size) and not inside_specimen([45, 89.0, 50], 1.0, size)
 
 
 def test_the_scan_tries_spheres_partly_out_of_view_and_no_wider_than_the_field_allows():

@@ -73,6 +73,18 @@ def capping_width(lo, hi, lateral, n_regions: int) -> float:
     return float(np.dot(np.subtract(hi, lo), np.abs(lateral))) if n_regions > 1 else math.inf
 
 
+# how far an inclusion's sphere keeps from the specimen's faces (the scan's and
+# the refinement's): one touching a face would stand for a contact or boundary
+# misfit, not for tissue inside
+WALL_GAP_MM = 0.5
+
+
+def inside_specimen(center_mm, radius_mm: float, size_mm) -> bool:
+    """Whether the sphere lies inside the specimen's box, WALL_GAP_MM from its faces."""
+    c, size = np.asarray(center_mm, float), np.asarray(size_mm, float)
+    return bool(np.all(c - radius_mm >= WALL_GAP_MM - 1e-9) and np.all(c + radius_mm <= size - WALL_GAP_MM + 1e-9))
+
+
 def candidate_spheres(lo, hi, y: float, size, radii_mm, step: float, width: float) -> list:
     """The scan's spheres, (centre, radius): centres on a grid of ``step`` over the
     tracked field's box ``lo``..``hi`` (x and z; y the image plane's) and whole
@@ -87,7 +99,7 @@ def candidate_spheres(lo, hi, y: float, size, radii_mm, step: float, width: floa
         out = np.ceil(rad / step - 1e-9) * step
         for x in np.arange(lo[0] - out, hi[0] + out + 1e-9, step):
             for z in np.arange(lo[2] - out, hi[2] + out + 1e-9, step):
-                c = np.clip([x, y, z], rad + 0.5, size - rad - 0.5)
+                c = np.clip([x, y, z], rad + WALL_GAP_MM, size - rad - WALL_GAP_MM)
                 spheres.setdefault((tuple(np.round(c, 6)), rad), (c, rad))
     return list(spheres.values())
 
