@@ -85,7 +85,7 @@ def main() -> None:
 
 
 def same_mesh(a) -> None:
-    from app.core.diagnose import ModelCheck
+    from app.core.diagnose import ModelCheck, RefinementRefused
     from app.core.experiment import read_experiment
 
     exp = read_experiment(a.experiment)
@@ -96,9 +96,12 @@ def same_mesh(a) -> None:
     print(f"diagnosis: {d.candidate('inclusion').evidence}")
     mc.add("inclusion")
     t1 = time.perf_counter()
-    refined = mc.refine_inclusion(max_trials=a.trials, progress=lambda s: print("  " + s, flush=True))
+    try:
+        refined = mc.refine_inclusion(max_trials=a.trials, progress=lambda s: print("  " + s, flush=True))
+        print(f"warning: {refined.warning or 'none'}")
+    except RefinementRefused as exc:  # an answer: the versions stay as they were
+        print(f"refused: {exc}")
     t2 = time.perf_counter()
-    print(f"warning: {refined.warning or 'none'}")
     print(f"\n{'version':<34} {'sphere':>34} {'chi2':>9} {'beyond the noise (px)':>22}  moduli (kPa)")
     for v in mc.history.versions:
         sph = (f"({', '.join(f'{c:.1f}' for c in v.inclusion['center_mm'])}) r {v.inclusion['radius_mm']:.2f}"
