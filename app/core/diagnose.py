@@ -871,7 +871,7 @@ REFINE_MIN_STEP_MM = 0.4
 # current fit's (a fit still enriches it wherever it goes), to this relative
 # residual, with the current model's factorization borrowed. At paper size (the
 # in-view inclusion seed, five trials): 2.3 s a trial instead of 7.3 s (3 and 1e-7,
-# a factorization each), chi2 within 0.6 of those, moduli within 0.1%
+# a factorization each), chi2 within 0.7 of those, moduli within 0.1%
 # (docs/model-check.md, "The inclusion locator")
 REFINE_NEAR_FACTOR = 1.5
 REFINE_ROM_TOL = 1e-5
