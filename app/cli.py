@@ -256,16 +256,13 @@ def cmd_identify(args) -> int:
         if inclusion is not None:
             from app.core.effects.inclusion import place_text
 
+            located = refinement["located"] if args.refine_inclusion else inclusion
+            print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
+                  f"{locate_seconds:.1f} s before the fit): centre {place_text(located)}")
             if args.refine_inclusion:
-                located = refinement["located"]
-                print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
-                      f"{locate_seconds:.1f} s before the fit): centre {place_text(located)}")
                 print(f"  {'refined' if refinement['refined'] else 'not refined'} in {refinement['seconds']:.1f} s"
                       f"{': centre ' + place_text(inclusion) if refinement['refined'] else ''}; "
                       f"{refinement['note']}")
-            else:
-                print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
-                      f"{locate_seconds:.1f} s before the fit): centre {place_text(inclusion)}")
         for name, val in result.parameters.items():
             region = name[2:-4] if name.startswith("E_") else ""
             extra = f"   (reference {ref[region]:.1f} kPa)" if region in ref else ""

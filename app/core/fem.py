@@ -186,19 +186,20 @@ def assemble(space: P2Space, chunk: int = 4000) -> AffineOperator:
     nnz = len(template.indices)
     regions = [int(r) for r in np.unique(space.labels)]
     data = {(r, k): np.zeros(nnz) for r in regions for k in ("mu", "lam")}
-    _add_elements(data, space, template.indptr, template.indices, np.arange(len(elems)), space.labels, 1.0, chunk)
+    _add_elements(data, space, template.indptr, template.indices, None, space.labels, chunk=chunk)
     return AffineOperator(space, template.indptr.copy(), template.indices.copy(), data)
 
 
-def _add_elements(data: dict, space: P2Space, indptr, indices, which: np.ndarray, labels: np.ndarray,
-                  sign: float, chunk: int = 4000) -> None:
-    """Add ``sign`` times the unit element matrices of the elements ``which`` to
-    ``data[(labels[e], kind)]`` (value arrays over the CSR pattern; missing keys
-    are made)."""
+def _add_elements(data: dict, space: P2Space, indptr, indices, which: np.ndarray | None, labels: np.ndarray,
+                  subtract: bool = False, chunk: int = 4000) -> None:
+    """Add (or subtract) the unit element matrices of the elements ``which`` (all
+    when None: taken in slices, no copies) to ``data[(labels[e], kind)]`` (value
+    arrays over the CSR pattern; missing keys are made)."""
     nnz = len(indices)
     bary = QUAD_BARY  # degree 1 needs one point; four are exact too
-    for s in range(0, len(which), chunk):
-        sl = which[s : s + chunk]
+    n = len(space.elems) if which is None else len(which)
+    for s in range(0, n, chunk):
+        sl = slice(s, s + chunk) if which is None else which[s : s + chunk]
         pos = element_positions(indptr, indices, space.elems[sl])  # (m, 3 nloc, 3 nloc)
         dN = shape_gradients(bary, space.grad_bary[sl], space.degree)  # (m, q, nloc, 3)
         wv = space.volumes_mm3[sl][:, None] * QUAD_W[None, :]  # (m, q)
@@ -215,7 +216,8 @@ def _add_elements(data: dict, space: P2Space, indptr, indices, which: np.ndarray
                 key = (int(r), kind)
                 if key not in data:
                     data[key] = np.zeros(nnz)
-                data[key] += sign * np.bincount(at, weights=K[sel].ravel(), minlength=nnz)
+                w = K[sel].ravel()
+                data[key] += np.bincount(at, weights=-w if subtract else w, minlength=nnz)
 
 
 def relabel(op: AffineOperator, mesh: TetMesh) -> AffineOperator:
@@ -232,8 +234,8 @@ def relabel(op: AffineOperator, mesh: TetMesh) -> AffineOperator:
                     op.space.degree)
     changed = np.flatnonzero(old.labels != mesh.labels)
     data = {k: v.copy() for k, v in op.data.items()}
-    _add_elements(data, space, op.indptr, op.indices, changed, old.labels, -1.0)
-    _add_elements(data, space, op.indptr, op.indices, changed, mesh.labels, 1.0)
+    _add_elements(data, space, op.indptr, op.indices, changed, old.labels, subtract=True)
+    _add_elements(data, space, op.indptr, op.indices, changed, mesh.labels)
     for r in set(int(r) for r, _ in data) - set(int(r) for r in np.unique(mesh.labels)):  # regions left empty
         del data[(r, "mu")], data[(r, "lam")]
     return AffineOperator(space, op.indptr, op.indices, data)
