@@ -55,6 +55,7 @@ from app.core.compare import gather as _gather
 from app.core.compare import neighbour_median
 from app.core.compare import neighbourhoods as _neighbourhoods
 from app.core.effects import EFFECT_IDS, INFO, check
+from app.core.effects.inclusion import huber_loss
 from app.core.effects.model import EffectProblem, FitResult, fit, fit_hyperelastic, identify_with_effects
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import relabel
@@ -335,8 +336,7 @@ class Likelihood:
             r = (tp.measured_px - m)[tp.valid]
             sq += float((r**2).sum())
             n += r.shape[0]
-            z = np.abs(r) / self._sigma_valid[j]
-            chi_u += float(np.where(z <= c, z * z, 2 * c * z - c * c).sum())
+            chi_u += float(huber_loss((r / self._sigma_valid[j]).ravel(), c))
             s, _ = _systematic(tp.measured_px - m, tp.valid, tp.grid_index)
             sys_sq += float((s**2).sum())
             sys_n += len(s)
@@ -830,7 +830,8 @@ def _scan(problem: EffectProblem, params: dict, tracked, noise, lik, cancel):
     from app.core.effects.inclusion import scan
 
     return scan(problem, params, tracked, lik.model_px(params),
-                [_block_sigma(tp, noise, k)[tp.valid] for k, tp in enumerate(tracked.pairs)], cancel=cancel)
+                [_block_sigma(tp, noise, k)[tp.valid] for k, tp in enumerate(tracked.pairs)], cancel=cancel,
+                huber_c=noise.huber)
 
 
 def locate_inclusion(exp, effects=(), *, mesh_settings=None, max_evaluations: int = 200, progress=None, cancel=None,
