@@ -254,11 +254,13 @@ def cmd_identify(args) -> int:
     if args.json != "-":
         print(f"{exp.name}: {result.evaluations} evaluations in {result.seconds:.1f} s, cost {args.cost}")
         if inclusion is not None:
-            from app.core.effects.inclusion import place_text
+            from app.core.effects.inclusion import also_fits_text, place_text
 
             located = refinement["located"] if args.refine_inclusion else inclusion
             print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
                   f"{locate_seconds:.1f} s before the fit): centre {place_text(located)}")
+            if located.get("also_fits"):
+                print(f"  the place is uncertain: {also_fits_text(located, exp.specimen.size_mm[2])}")
             if args.refine_inclusion:
                 print(f"  {'refined' if refinement['refined'] else 'not refined'} in {refinement['seconds']:.1f} s"
                       f"{': centre ' + place_text(inclusion) if refinement['refined'] else ''}; "

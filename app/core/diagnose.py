@@ -858,8 +858,9 @@ def locate_inclusion(exp, effects=(), *, mesh_settings=None, max_evaluations: in
     if guess is None:
         raise ElastoidError("the inclusion effect: the misfit of the model without it has no localized part to "
                             "place an inclusion at")
-    say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm")
-    return {"name": guess.name, **guess.as_parameters()}
+    say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm"
+        f"{' (its place is uncertain)' if guess.rival else ''}")
+    return guess.as_inclusion()
 
 
 # the search of refine_inclusion: centre steps of this fraction of the smallest
@@ -1082,7 +1083,7 @@ class _InclusionPrep:
             self.guess, self.error = None, exc
         if self.guess is None:
             return
-        self.inclusion = {"name": self.guess.name, **self.guess.as_parameters()}
+        self.inclusion = self.guess.as_inclusion()
         # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
         self.start_kPa = base.parameters[_host(problem, self.guess.center_mm)] * (2.0 if self.guess.stiffer else 0.5)
         near = (*problem.moduli(base.parameters), self.start_kPa)
@@ -1470,13 +1471,13 @@ def _evidence(eff, problem, base: Candidate, cand: Candidate, tracked, lik0, lik
 
         return evidence(cand.parameters["nu"], P.nu, before, after)
     if eff == "inclusion":
-        from app.core.effects.inclusion import InclusionGuess, evidence
+        from app.core.effects.inclusion import InclusionGuess, also_fits_text, evidence
 
         inc = cand.inclusion
         g = InclusionGuess(inc["name"], tuple(inc["center_mm"]), inc["radius_mm"], True, 0.0)
-        depth = P.exp.specimen.size_mm[2] - inc["center_mm"][2]
+        top = P.exp.specimen.size_mm[2]
         ratio = cand.parameters[f"E_{inc['name']}_kPa"] / cand.parameters[_host(P, inc["center_mm"])]
-        return evidence(g, depth, ratio, before, after)
+        return evidence(g, top - inc["center_mm"][2], ratio, before, after, also_fits_text(inc, top))
     return ""
 
 

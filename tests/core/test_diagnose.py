@@ -962,3 +962,31 @@ def test_the_scan_fits_each_sphere_under_the_diagnosis_huber_loss():
     assert b[2, 0] == pytest.approx(1.5, abs=0.15)  # the outliers barely move it
     assert loss[0] < loss[1]  # the column that made the data fits it best
     assert huber_loss(np.array([1.0, -3.0]), 2.0) == pytest.approx(1.0 + (2 * 2 * 3 - 4))
+
+
+def test_a_sphere_elsewhere_that_fits_nearly_as_well_is_reported():
+    """The scan reports a non-overlapping sphere that explains RIVAL_SHARE of what the
+    best explains, and the evidence and the inclusion's dict say so. The scores are
+    the out-of-view paper-size seed's (16xxx `incl`, 2026-11-29): a softer sphere
+    right of the field 284.4, a stiffer one left of it 266.5 (the truth is there)."""
+    from app.core.effects.inclusion import RIVAL_SHARE, InclusionGuess, also_fits_text, best_and_rival, evidence
+
+    right, left = np.array([64.7, 45.0, 78.0]), np.array([21.5, 45.0, 74.4])
+    scored = [(284.4, right, 6.4, -0.79), (282.0, right, 5.4, -1.32),  # the same place, another radius
+              (268.9, right + [0, 0, 3.6], 6.4, -0.6),  # overlapping: the same place too
+              (266.5, left, 5.4, 1.94), (120.0, np.array([45.0, 45.0, 60.0]), 5.4, 0.5)]
+    best, rival = best_and_rival(scored)
+    assert best[0] == 284.4 and rival[0] == 266.5 and rival[3] > 0
+    assert best_and_rival([t for t in scored if t[0] != 266.5])[1] is None  # 120 is not within RIVAL_SHARE
+    assert best_and_rival([(100.0, right, 6.4, 1.0), (RIVAL_SHARE * 100.0 - 0.1, left, 5.4, 1.0)])[1] is None
+    g = InclusionGuess("I", tuple(right), 6.4, False, 284.4, (tuple(left), 5.4, True, 266.5))
+    inc = g.as_inclusion()
+    assert inc["also_fits"] == {"center_mm": [21.5, 45.0, 74.4], "radius_mm": 5.4, "stiffer": True,
+                                "explained": 266.5, "explained_here": 284.4}
+    text = also_fits_text(inc, 96.0)
+    assert text == ("a stiffer region about 11 mm across at 22 mm depth, 43 mm from it, explains the misfit nearly "
+                    "as well (266 against 284 on the scan): these measurements do not tell the two places apart")
+    said = evidence(g, 18.0, 0.3, 0.35, 0.15, text)
+    assert said.endswith("falls from 0.35 to 0.15 px; but " + text)
+    clear = InclusionGuess("I", tuple(left), 5.4, True, 300.0)
+    assert "also_fits" not in clear.as_inclusion() and also_fits_text(clear.as_inclusion(), 96.0) == ""

@@ -416,6 +416,10 @@ def test_history_text_and_rows():
     assert parameters_text(h.versions[1].parameters) == "B 12.00, A 36.00 kPa; g1 0.3, tau1_s 2.00"
     # a viscoelastic candidate fitted to no relaxation (the demo's: g1 8.95e-12)
     assert parameters_text({"E_B_kPa": 17.6, "g1": 8.95e-12, "tau1_s": 1000.0}) == "B 17.60 kPa; g1 0, tau1_s 1000.0"
+    inc = {"name": "I", "center_mm": [64.7, 45.0, 78.0], "radius_mm": 6.4}
+    assert parameters_text({"E_B_kPa": 17.6}, inc) == "B 17.60 kPa; inclusion I at (64.7, 45.0, 78.0) mm, radius 6.4 mm"
+    assert parameters_text({"E_B_kPa": 17.6}, {**inc, "also_fits": {"center_mm": [21.5, 45.0, 74.4]}}).endswith(
+        "radius 6.4 mm (place uncertain)")  # a sphere elsewhere fits nearly as well (the evidence says where)
     h0 = ModelHistory().with_version(("viscoelastic",), {"E_B_kPa": 10.0, "g1": 8.95e-12}, {"nmi": 1.0},
                                      {"force_rms_N": 0.3, "chi2": 900.0})
     h0 = h0.with_version(("viscoelastic",), {"E_B_kPa": 12.0, "g1": 0.3}, {"nmi": 1.0},

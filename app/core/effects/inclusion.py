@@ -50,12 +50,51 @@ class InclusionGuess:
     radius_mm: float
     stiffer: bool  # the strain misfit says stiffer than the surroundings
     explained: float  # the Huber loss (chi2 units) its pattern removes beyond the described regions' patterns
+    # a sphere elsewhere that explains nearly as much (see RIVAL_SHARE): centre, radius,
+    # stiffer, explained; None when the place is clear
+    rival: tuple | None = None
 
     def region(self) -> Region:
         return Region(self.name, "sphere", center_mm=tuple(self.center_mm), radius_mm=float(self.radius_mm))
 
     def as_parameters(self) -> dict:
         return {"center_mm": [round(c, 3) for c in self.center_mm], "radius_mm": round(self.radius_mm, 3)}
+
+    def as_inclusion(self) -> dict:
+        """The located inclusion as the diagnosis and the models take it: name,
+        center_mm, radius_mm, and ``also_fits`` (center_mm, radius_mm, stiffer,
+        explained, and this one's explained) when a sphere elsewhere explains the
+        misfit nearly as well."""
+        out = {"name": self.name, **self.as_parameters()}
+        if self.rival is not None:
+            c, r, stiffer, gain = self.rival
+            out["also_fits"] = {"center_mm": [round(float(v), 3) for v in c], "radius_mm": round(float(r), 3),
+                                "stiffer": bool(stiffer), "explained": round(float(gain), 1),
+                                "explained_here": round(float(self.explained), 1)}
+        return out
+
+
+# A sphere that does not overlap the best one and explains at least this share of
+# what the best explains (the scan's Huber loss) makes the place ambiguous, and the
+# evidence says so. On the paper-size seed whose hidden sphere is out of view
+# (16xxx `incl`) a stiffer sphere left of the field and a softer one right of it
+# explained 266 and 284 (0.94), and the scan took the wrong one
+# (docs/model-check.md, "The inclusion locator").
+RIVAL_SHARE = 0.9
+
+
+def also_fits_text(inclusion: dict, top_mm: float) -> str:
+    """What else fits, for an inclusion whose place is ambiguous (``also_fits`` of
+    :meth:`InclusionGuess.as_inclusion`), or "". ``top_mm``: the height of the
+    specimen's top face (depths are measured from it)."""
+    also = inclusion.get("also_fits")
+    if not also:
+        return ""
+    apart = math.dist(also["center_mm"], inclusion["center_mm"])
+    return (f"a {'stiffer' if also['stiffer'] else 'softer'} region about {2 * also['radius_mm']:.0f} mm "
+            f"across at {top_mm - also['center_mm'][2]:.0f} mm depth, {apart:.0f} mm from it, explains the misfit "
+            f"nearly as well ({also['explained']:.0f} against {also['explained_here']:.0f} on the scan): these "
+            "measurements do not tell the two places apart")
 
 
 def place_text(inclusion: dict) -> str:
@@ -177,13 +216,16 @@ def negligible(e_inclusion_kPa: float, tissue) -> str:
             f"{NEGLIGIBLE_RATIO:g} of its surroundings")
 
 
-def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: float, after_px: float) -> str:
+def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: float, after_px: float,
+             also: str = "") -> str:
     """The inclusion's sentence: where the scan put it, what it does, and whether
     it explains the misfit (only when the displacement misfit falls with it).
     ``before_px``: the current model's misfit on the inclusion's mesh (what the
-    diagnosis compares the inclusion with)."""
+    diagnosis compares the inclusion with); ``also``: a clause saying where else it
+    fits (:func:`also_fits_text`), added after a "but"."""
     from app.core.effects import misfit_change
 
+    also = f"; but {also}" if also else ""
     where = f"a region the experiment does not describe, about {2 * guess.radius_mm:.0f} mm across at " \
             f"{depth_mm:.0f} mm depth"
     stiffness = f"{e_ratio:.1f} times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
@@ -192,8 +234,8 @@ def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: 
     if moved.startswith("falls"):  # as the sentence reads it: lower to the digits shown
         how = "it explains the misfit" if after_px <= 0.9 * before_px else "it explains little of the misfit"
         return (f"{where}, deforms {'less' if e_ratio >= 1 else 'more'} than its surroundings: as an inclusion "
-                f"{stiffness} {how}; {change}")
-    return f"{where} was tried as an inclusion ({stiffness} at best) and does not explain the misfit; {change}"
+                f"{stiffness} {how}; {change}{also}")
+    return f"{where} was tried as an inclusion ({stiffness} at best) and does not explain the misfit; {change}{also}"
 
 
 def huber_loss(res: np.ndarray, c: float) -> np.ndarray:
@@ -225,6 +267,19 @@ def huber_fits(X: np.ndarray, y: np.ndarray, c: float, iterations: int = 40) -> 
         if done:
             break
     return huber_loss(y[:, None] - np.einsum("nkm,km->nm", X, b), c), b
+
+
+def best_and_rival(scored: list) -> tuple:
+    """The scan's best sphere and its rival, if any: of ``scored`` (explained,
+    centre, radius, amplitude), the one that explains most, and the best of those
+    not overlapping it if that explains at least RIVAL_SHARE as much (else None)."""
+    best = max(scored, key=lambda t: t[0])
+    gain, c, rad = best[0], np.asarray(best[1], float), best[2]
+    elsewhere = [t for t in scored if np.linalg.norm(np.asarray(t[1], float) - c) > t[2] + rad]
+    rival = max(elsewhere, key=lambda t: t[0], default=None)
+    if rival is not None and (gain <= 0 or rival[0] < RIVAL_SHARE * gain):
+        rival = None
+    return best, rival
 
 
 def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=None,
@@ -312,7 +367,7 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=N
         step = max(tracked.block_px * min(problem._sc, problem._sr), 0.04 * size.min())
         y = float(exp.probe.center_mm[1])
         spheres = candidate_spheres(lo, hi, y, size, radii_mm, step, capping_width(lo, hi, problem._lat, len(E)))
-        best = None
+        scored = []
         for k0 in range(0, len(spheres), 32):
             if cancel is not None and cancel.is_set():
                 raise Cancelled("inclusion scan cancelled")
@@ -328,13 +383,14 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=N
             X = np.concatenate([np.repeat(R[:, :, None], J.shape[1], axis=2), J[:, None, :]], axis=1)
             loss, coef = huber_fits(X, r, huber_c)
             for (c, rad), lj, amp, Jc in zip(chunk, loss, coef[-1], J.T):
-                gain = base_loss - float(lj)  # the loss the sphere's pattern removes (chi2 units)
-                if Jc @ Jc > 0 and (best is None or gain > best[0]):
-                    best = (gain, c, rad, float(amp))
+                if Jc @ Jc > 0:  # gain: the loss the sphere's pattern removes (chi2 units)
+                    scored.append((base_loss - float(lj), c, rad, float(amp)))
     finally:
         fac.free()
-    if best is None:
+    if not scored:
         return None
-    gain, c, rad, amp = best
+    (gain, c, rad, amp), rival = best_and_rival(scored)
     name = new_region_name(exp.specimen.region_names)
-    return InclusionGuess(name, tuple(float(v) for v in c), float(rad), bool(amp > 0), float(gain))
+    return InclusionGuess(name, tuple(float(v) for v in c), float(rad), bool(amp > 0), float(gain),
+                          None if rival is None else (tuple(float(v) for v in rival[1]), float(rival[2]),
+                                                      bool(rival[3] > 0), float(rival[0])))

@@ -301,7 +301,8 @@ def parameters_text(parameters: dict, inclusion: dict | None = None, only: tuple
     if other:
         out.append(", ".join(f"{k} {_num(v)}" for k, v in other))
     if inclusion:
-        out.append(f"inclusion {inclusion.get('name', '')} at {place_text(inclusion)}")
+        out.append(f"inclusion {inclusion.get('name', '')} at {place_text(inclusion)}"
+                   f"{' (place uncertain)' if inclusion.get('also_fits') else ''}")
     return "; ".join(out)
 
 
