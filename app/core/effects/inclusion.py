@@ -22,7 +22,7 @@ misfit clipped at 3 sigma, with the described patterns projected out. A hidden
 sphere the model misses by 5-10 sigma over a whole side of the field (three
 blind paper-size seeds, 2026-11-29) was then clipped flat, every stiff sphere
 on that side explained the flattened misfit about as well, and the best sat
-just under the probe: 4.1, 4.3 and 12.6 mm from the truth. Scored by the fall
+just under the probe: 4.1, 4.3 and 11.7 mm from the truth. Scored by the fall
 of the Huber loss (so a block misfit by 8 sigma still counts, linearly), the
 scan put them 0.9, 1.3 and 1.4 mm from it (docs/model-check.md, "The inclusion
 locator").
