@@ -62,7 +62,8 @@ def main(argv=None) -> int:
         if g.rival is not None:
             c, r, stiffer, gain = g.rival
             other = f"({c[0]:.1f}, {c[2]:.1f}) {r:.1f}"
-            kind, part = ("stiffer" if stiffer else "softer"), f"{gain / g.explained:.2f}{'*' if gain >= share * g.explained else ''}"
+            kind = "stiffer" if stiffer else "softer"
+            part = f"{gain / g.explained:.2f}{'*' if gain >= share * g.explained else ''}"
         else:
             other, kind, part = "-", "", "-"
         print(f"{Path(path).name:<26} {where:>22} {'stiffer' if g.stiffer else 'softer':>8} {g.explained:>9.1f} "

@@ -283,7 +283,7 @@ def best_and_rival(scored: list) -> tuple:
 
 
 def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=None,
-         cancel=None, huber_c: float = 2.0) -> InclusionGuess | None:
+         cancel=None, *, huber_c: float) -> InclusionGuess | None:
     """Locate an undescribed inclusion by the sensitivity scan (module docstring).
 
     ``problem``: the current model (an :class:`app.core.effects.model.EffectProblem`)
@@ -291,7 +291,7 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=N
     ``noise_px``: the tracking noise, one value, or per frame pair one value or one
     per valid block (each block's misfit and patterns are weighted by its inverse,
     so the scan works in chi2); ``huber_c``: the Huber loss' threshold (sigma) the
-    candidates are scored by (the diagnosis' image term)."""
+    candidates are scored by (the diagnosis' image term: its noise model's)."""
     from app.core.errors import Cancelled
     from app.core.fem import QUAD_BARY, QUAD_W, coefficients, interpolation_matrix, lame, quadrature_points, \
         shape_gradients
