@@ -69,6 +69,7 @@ from scipy.ndimage import map_coordinates
 
 from app.core.images import pixel_to_world
 from app.core.similarity import local_similarity
+from app.core.warp import bilinear
 
 
 @dataclass(frozen=True)
@@ -392,6 +393,10 @@ class FrameComparison:
     valid: np.ndarray
     region_share: dict  # region -> share of this frame's displacement misfit (outliers left out)
     outlier: np.ndarray  # valid blocks that fail the normalized median test (see outliers)
+    source_displacement_mm: float = 0.0  # the source frame's probe travel
+    # where every OUTLINE_STEP_PX-th pixel of the target ROI came from in the source
+    # frame, by the model: (rows, cols, 2) of (col, row) px (see outlines)
+    source_of_target_px: np.ndarray | None = None
 
     @property
     def difference_px(self) -> np.ndarray:
@@ -414,6 +419,12 @@ class Comparison:
     displacement_rms_px: float
     noise_px: float
     force_noise_N: float
+    regions: tuple = ()  # the model's regions (app.core.geometry.Region), an added inclusion among them
+    experiment: object = field(default=None, repr=False)  # the experiment compared (its imaging geometry)
+
+    def outlines(self, k: int, regions=None, frame: str = "target") -> dict[str, list[np.ndarray]]:
+        """:func:`outlines` on frame ``k`` of the comparison; by default of the model's regions."""
+        return outlines(self.experiment, self.frames[k], self.regions if regions is None else regions, frame)
 
     def lines(self) -> list[str]:
         out = [f"force misfit {self.force_rms_N:.4f} N RMS (noise {self.force_noise_N:.4f} N)",
@@ -449,7 +460,10 @@ def compare(problem, params: dict, tracked: TrackedField | None = None, window: 
     img_tot = {n: 0.0 for n in names}
     all_res = []
     for k_pair, (pair, tp) in enumerate(zip(problem.pairs, tracked.pairs)):
-        w = pair.warp(pair.source_image, coarse=problem._coarse_field(pair, a))
+        rows_src, cols_src = pair.warp.sample_positions(coarse=problem._coarse_field(pair, a))
+        w = bilinear(np.asarray(pair.source_image, float), rows_src, cols_src)
+        st = OUTLINE_STEP_PX
+        src_of_tgt = np.stack([cols_src[::st, ::st], rows_src[::st, ::st]], axis=-1)
         ls = local_similarity(w, pair.target_roi, window)
         resid = np.where(pair.mask, 1.0 - ls, np.nan)
         model = _model_at(problem, params, a, pair, tp.points_world_mm)
@@ -476,7 +490,7 @@ def compare(problem, params: dict, tracked: TrackedField | None = None, window: 
         f = problem.exp.frames[pair.target]
         frames.append(FrameComparison(pair.source, pair.target, f.time_s, f.displacement_mm, tuple(problem.roi), w,
                                       pair.target_roi, resid, tp.points_px, tp.measured_px, model, tp.valid,
-                                      {n: v / s for n, v in share.items()}, out))
+                                      {n: v / s for n, v in share.items()}, out, pair.d_source_mm, src_of_tgt))
     s = sum(tot.values()) or 1.0
     si = sum(img_tot.values()) or 1.0
     allr = np.vstack(all_res) if all_res else np.zeros((0, 2))
@@ -487,7 +501,74 @@ def compare(problem, params: dict, tracked: TrackedField | None = None, window: 
                       {n: v / s for n, v in tot.items()}, {n: v / si for n, v in img_tot.items()},
                       float(np.sqrt(np.mean((Fm - log.force_N) ** 2))),
                       float(np.sqrt(np.mean((allr**2).sum(1)))) if len(allr) else float("nan"),
-                      tracked.noise_px, float(problem.force_sigma_N))
+                      tracked.noise_px, float(problem.force_sigma_N), tuple(problem.exp.specimen.regions), problem.exp)
+
+
+# the outlines' grid: every second pixel; each outline point is then placed on the
+# region's boundary along its grid edge by bisection (OUTLINE_BISECTIONS halvings:
+# to 2/256 px)
+OUTLINE_STEP_PX = 2
+OUTLINE_BISECTIONS = 8
+
+
+def outlines(exp, fc: FrameComparison, regions, frame: str = "target") -> dict[str, list[np.ndarray]]:
+    """Where each of ``regions`` (app.core.geometry.Region; the background is
+    skipped) lies in a compared frame's ROI: its outline as polylines (n, 2) of
+    (col, row) pixels, by region name; a region that does not cut the image
+    plane within the ROI has none.
+
+    ``frame`` "source": the region's section by the source frame's image plane
+    (the model's reference state). "target": the same material boundary where the
+    model's displacement carried it in the target frame (a pixel of the target
+    is inside when the source pixel the model brings to it is), so on the
+    residual map the outline sits where the model puts the region: a misfit along
+    it points at the region's stiffness or shape."""
+    if frame not in ("source", "target"):
+        raise ValueError(f"frame must be 'source' or 'target', got {frame!r}")
+    from skimage.measure import find_contours
+
+    c0, r0, c1, r1 = fc.roi_px
+    st = OUTLINE_STEP_PX
+    moved = frame == "target" and fc.source_of_target_px is not None
+    shape = fc.source_of_target_px.shape[:2] if moved else (len(range(r0, r1, st)), len(range(c0, c1, st)))
+
+    def material(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """World points (source frame, the model's reference) of grid positions (i, j), fractional."""
+        if moved:
+            cols = map_coordinates(fc.source_of_target_px[..., 0], [i, j], order=1, mode="nearest")
+            rows = map_coordinates(fc.source_of_target_px[..., 1], [i, j], order=1, mode="nearest")
+        else:
+            cols, rows = c0 + st * j, r0 + st * i
+        return pixel_to_world(cols, rows, exp, fc.source_displacement_mm)
+
+    I, J = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    world = material(I.ravel(), J.ravel())
+    out = {}
+    for region in regions:
+        if region.kind == "background":
+            continue
+        inside = region.contains(world).reshape(shape)
+        if not inside.any() or inside.all():
+            continue
+        lines = [ln for ln in find_contours(inside.astype(float), 0.5) if len(ln) >= 2]
+        if not lines:
+            continue
+        # each vertex is the middle of a grid edge with one end inside, one outside:
+        # bisect along that edge for where the region's boundary crosses it
+        v = np.vstack(lines)
+        lo, hi = np.floor(v), np.ceil(v)
+        lo_in = inside[lo[:, 0].astype(int), lo[:, 1].astype(int)]
+        p_in, p_out = np.where(lo_in[:, None], lo, hi), np.where(lo_in[:, None], hi, lo)
+        t_in, t_out = np.zeros(len(v)), np.ones(len(v))
+        for _ in range(OUTLINE_BISECTIONS):
+            t = 0.5 * (t_in + t_out)
+            q = p_in + t[:, None] * (p_out - p_in)
+            now_in = region.contains(material(q[:, 0], q[:, 1]))
+            t_in, t_out = np.where(now_in, t, t_in), np.where(now_in, t_out, t)
+        q = p_in + (0.5 * (t_in + t_out))[:, None] * (p_out - p_in)
+        ends = np.cumsum([len(ln) for ln in lines])[:-1]
+        out[region.name] = [np.column_stack([c0 + st * g[:, 1], r0 + st * g[:, 0]]) for g in np.split(q, ends)]
+    return out
 
 
 def _model_at(problem, params, a, pair, world):

@@ -163,3 +163,59 @@ def test_tracking_does_not_lean_on_the_model_it_starts_from(tmp_path):
         # measured on four fresh meshes: 4.1-6.2% of the models' difference (medians
         # over 9-21 blocks); a pull toward the starting model of 10% or more fails
         assert measured_differ < 0.10 * models_differ + 0.02, (measured_differ, models_differ)
+
+
+def _segment_distance(points: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """Distance of each point (n, 2) to the polyline ``line`` (m, 2)."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    t = np.clip(np.einsum("pmk,mk->pm", points[:, None, :] - a[None], ab) / np.maximum((ab**2).sum(1), 1e-12),
+                0.0, 1.0)
+    nearest = a[None] + t[..., None] * ab[None]
+    return np.sqrt(((points[:, None, :] - nearest) ** 2).sum(-1)).min(axis=1)
+
+
+def test_region_outlines_lie_on_the_region_and_follow_the_models_displacement(tmp_path_factory):
+    """The outline of the stiff sphere A (centre (20, 20, 18), radius 7 mm, in the image
+    plane y = 20) on the maps. On the source frame every outline point lies on the
+    sphere's surface (a closed form). On the frame pressed 5 mm the outline is where
+    the model's own displacement at the material points (the reduced model's point
+    operator, not the warp's inverse thin-plate spline the outline is made from)
+    carries the source outline. A sphere beside the image plane has no outline."""
+    from app.core.compare import compare, outlines
+    from app.core.effects.model import EffectProblem
+    from app.core.geometry import Region
+    from app.core.images import pixel_to_world
+    from app.core.simulate import read_truth
+    from tests.core import synthetic
+
+    exp = synthetic.diagnose_experiment(tmp_path_factory, "none-5")
+    truth = read_truth(exp.path)["moduli_kPa"]
+    problem = EffectProblem.from_experiment(exp, mesh_settings=synthetic.DIAGNOSE_ID_MESH, frames=(0, 2))
+    params = {f"E_{k}_kPa": v for k, v in truth.items()}
+    cmp = compare(problem, params)
+    assert [r.name for r in cmp.regions] == ["B", "A"]
+    fc = cmp.frames[0]
+    assert fc.displacement_mm == pytest.approx(5.0) and fc.source_displacement_mm == 0.0
+
+    beside = Region("I", "sphere", center_mm=(20.0, 28.0, 18.0), radius_mm=6.0)  # 2 mm short of the plane
+    source = outlines(exp, fc, (*cmp.regions, beside), "source")
+    assert set(source) == {"A"} and len(source["A"]) == 1  # the background and the sphere beside: none
+    ring = source["A"][0]
+    assert np.allclose(ring[0], ring[-1])  # closed: A lies inside the ROI
+    world = pixel_to_world(ring[:, 0], ring[:, 1], exp, 0.0)
+    radius = np.linalg.norm(world - [20.0, 20.0, 18.0], axis=1)
+    assert np.abs(radius - 7.0).max() < 0.01, np.abs(radius - 7.0).max()  # measured 0.0007 mm
+    assert np.allclose(world[:, 1], 20.0)
+
+    target = outlines(exp, fc, cmp.regions, "target")["A"]
+    assert len(target) == 1
+    pts = ring[::3]
+    op = problem.rm.point_operator(pixel_to_world(pts[:, 0], pts[:, 1], exp, 0.0))
+    u = op.values(problem.rm.coords(problem.theta(params)))  # mm per mm of travel
+    moved = pts + 5.0 * np.column_stack([u @ problem._lat / problem._sc, (-1.0 - u[:, 2]) / problem._sr])
+    shift = moved - pts
+    assert np.median(np.abs(shift[:, 1])) > 3.0  # the sphere rises in the image by pixels, not fractions
+    # measured 0.21 px at most, for a median shift of 13.5 px (the warp's coarse field against the
+    # point operator)
+    assert _segment_distance(moved, target[0]).max() < 0.3, _segment_distance(moved, target[0]).max()

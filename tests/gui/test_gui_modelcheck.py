@@ -111,6 +111,15 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
         assert (f"{n_out} of them disagree with their neighbours" in panel.frame_note.text()) == (n_out > 0)
         mx, _ = panel.vector_curves["measured"].getData()
         assert not np.allclose(mx[1::6] - mx[0::6], 0)  # the tissue moved
+        # region A outlined on both maps, where the model puts it in each frame, and named
+        for frame in ("target", "source"):
+            lines = [it for it in panel.outline_items[frame] if not hasattr(it, "textItem")]
+            names = [it.textItem.toPlainText() for it in panel.outline_items[frame] if hasattr(it, "textItem")]
+            assert names == ["A"] and len(lines) == 1
+            x, y = lines[0].getData()
+            x, y = x[np.isfinite(x)], y[np.isfinite(y)]
+            assert len(x) > 20 and c0 <= x.min() and x.max() <= c1 and r0 <= y.min() and y.max() <= r1
+        assert "Outlines: A." in panel.frame_note.text()
         shares = [float(panel.share_table.item(i, 1).text().rstrip("%")) for i in range(panel.share_table.rowCount())]
         assert [panel.share_table.item(i, 0).text() for i in range(panel.share_table.rowCount())] == ["B", "A"]
         assert sum(shares) == pytest.approx(100, abs=2)
@@ -118,6 +127,9 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     hidden = panel.vector_curves["difference"].getData()[0]
     assert hidden is None or len(hidden) == 0
     panel.show_boxes["difference"].setChecked(True)
+    panel.show_boxes["outlines"].setChecked(False)
+    assert panel.outline_items == {"target": [], "source": []} and "Outlines" not in panel.frame_note.text()
+    panel.show_boxes["outlines"].setChecked(True)
 
     # diagnose (two candidates, to stay quick) while timing the event loop
     for e, cb in panel.candidate_boxes.items():
@@ -300,6 +312,69 @@ def test_identify_with_an_inclusion_locates_it(window, visco_experiment, qtbot, 
     assert v.effects == ("inclusion",) and v.inclusion["name"] == "I", v
     assert set(v.parameters) >= {"E_B_kPa", "E_A_kPa", "E_I_kPa"} and v.parameters["E_I_kPa"] > 0
     assert "inclusion I at (10.0, 20.0, 22.0) mm" in panel.version_label.text(), panel.version_label.text()
+    # the model's inclusion is one of its regions on the maps, outlined as A is
+    names = [it.textItem.toPlainText() for it in panel.outline_items["target"] if hasattr(it, "textItem")]
+    assert names == ["A", "I"] and "Outlines: A; I." in panel.frame_note.text(), panel.frame_note.text()
+
+
+def test_the_maps_outline_the_inclusion_the_diagnosis_located(window, visco_experiment, qtbot):
+    """After a diagnosis that found an inclusion, the Compare maps outline the
+    located sphere (dashed) and the sphere elsewhere that fits nearly as well
+    (dotted), beside the model's region A; a sphere the image plane does not cut
+    is named as not in it. The outlines are where the spheres cut the image plane
+    (app.core.compare.outlines, tested against the closed form in
+    tests/core/test_compare.py); the diagnosis here is made up, the comparison real."""
+    from app.core.diagnose import Candidate, Diagnosis, NoiseModel
+    from app.core.images import pixel_to_world
+    from app.gui.models.modelcheck import Snapshot
+
+    panel = _prepare(window, visco_experiment)
+    _click_and_wait(qtbot, panel, panel.identify_button)
+    snap0 = panel.model.snapshot
+    exp = read_experiment(visco_experiment)
+    misfit = {"chi2": 900.0, "force_rms_N": 0.02, "displacement_rms_px": 0.4}
+
+    def diagnosis(inclusion):
+        c = Candidate("inclusion", ("inclusion",), {"E_B_kPa": 15.0, "E_A_kPa": 45.0, "E_I_kPa": 60.0}, {}, misfit,
+                      4, 120.0, "a stiffer region", inclusion=inclusion, material=True, restored=True)
+        return Diagnosis("x", Candidate("", (), {}, {}, misfit), [c], "inclusion", NoiseModel(0.02, 10, 0.1, 10),
+                         30.0)
+
+    located = {"name": "I", "center_mm": [28.0, 20.0, 14.0], "radius_mm": 3.0,
+               "also_fits": {"center_mm": [11.0, 20.0, 14.0], "radius_mm": 2.5, "stiffer": True, "explained": 90.0,
+                             "explained_here": 100.0}}
+    panel._show(panel.model.apply((None, None, Snapshot(snap0.history, snap0.comparison, diagnosis(located), 0,
+                                                        "diagnose", "diagnosis: verdict inclusion"))))
+    panel.tabs.setCurrentIndex(0)
+    panel.frame_box.setCurrentIndex(0)
+    fc = panel.current_frame()
+    items = panel.outline_items["source"]
+    names = [it.textItem.toPlainText() for it in items if hasattr(it, "textItem")]
+    assert names == ["A", "I?", "I? also"]
+    lines = [it for it in items if not hasattr(it, "textItem")]
+    pens = [it.opts["pen"] for it in lines]
+    assert [p.style() for p in pens] == [Qt.SolidLine, Qt.CustomDashLine, Qt.CustomDashLine]
+    assert pens[1].dashPattern()[0] > 2 * pens[2].dashPattern()[0]  # dashes, then dots
+    for it, (center, radius) in zip(lines[1:], (((28.0, 20.0, 14.0), 3.0), ((11.0, 20.0, 14.0), 2.5))):
+        x, y = it.getData()
+        ok = np.isfinite(x)
+        world = pixel_to_world(x[ok], y[ok], exp, fc.source_displacement_mm)
+        assert np.abs(np.linalg.norm(world - center, axis=1) - radius).max() < 0.01
+    note = panel.frame_note.text()
+    assert "Outlines: A; I?, the inclusion the diagnosis located (dashed); I? also, where it would fit nearly as " \
+           "well (dotted)." in note and "Not in this image plane" not in note
+    assert len([it for it in panel.outline_items["target"] if not hasattr(it, "textItem")]) == 3
+
+    # a located sphere beside the image plane (y = 20): said, not drawn
+    beside = {"name": "I", "center_mm": [28.0, 26.0, 14.0], "radius_mm": 3.0}
+    panel._show(panel.model.apply((None, None, Snapshot(snap0.history, snap0.comparison, diagnosis(beside), 0,
+                                                        "diagnose", "diagnosis: verdict inclusion"))))
+    names = [it.textItem.toPlainText() for it in panel.outline_items["source"] if hasattr(it, "textItem")]
+    assert names == ["A"] and "Not in this image plane: I?." in panel.frame_note.text()
+    # a diagnosis of another version outlines nothing but the model's regions
+    panel._show(panel.model.apply((None, None, Snapshot(snap0.history, snap0.comparison, diagnosis(located), 3,
+                                                        "diagnose", "diagnosis: verdict inclusion"))))
+    assert panel.frame_note.text().count("Outlines: A.") == 1
 
 
 def test_refine_the_inclusion_makes_a_version(window, visco_experiment, qtbot, monkeypatch):

@@ -319,6 +319,61 @@ def key_parameters(candidate) -> str:
     return "; ".join(x for x in (first, moduli) if x)
 
 
+@dataclass(frozen=True)
+class Outline:
+    """A region the Compare maps outline: the model's own regions, and the
+    inclusion the last diagnosis located (with where it would also fit), until
+    it is added."""
+
+    region: Any  # app.core.geometry.Region
+    kind: str  # "region" (the model's) | "located" (by the diagnosis) | "also fits"
+    label: str  # written on the map beside the outline
+
+
+def outline_shapes(snapshot) -> list[Outline]:
+    """What the Compare maps outline for ``snapshot``: every region of the compared
+    model but the background; and, when the diagnosis of the current version found
+    an inclusion (a positive, material score) that the model has not got, the located
+    sphere and the sphere that fits nearly as well (``also_fits``), if any."""
+    from app.core.effects.inclusion import inclusion_region
+
+    cmp = snapshot.comparison if snapshot is not None else None
+    if cmp is None:
+        return []
+    regions = tuple(cmp.regions)
+    out = [Outline(r, "region", r.name) for r in regions if r.kind != "background"]
+    d = snapshot.diagnosis
+    if d is None or snapshot.history is None or snapshot.diagnosed_version != snapshot.history.current:
+        return out
+    c = next((c for c in d.candidates if c.effect == "inclusion"), None)
+    if c is None or not c.inclusion or not (c.fitted and c.score > 0 and c.material):
+        return out
+    inc = c.inclusion
+    if inc["name"] in {r.name for r in regions}:
+        return out
+    out.append(Outline(inclusion_region(inc), "located", f"{inc['name']}?"))
+    also = inc.get("also_fits")
+    if also:
+        out.append(Outline(inclusion_region({"name": f"{inc['name']} (also fits)", **also}), "also fits",
+                           f"{inc['name']}? also"))
+    return out
+
+
+def outlines_note(shapes: list[Outline], drawn) -> str:
+    """The maps' legend for the outlines, and which of them this frame's image
+    plane does not cut (``drawn``: the names outlined)."""
+    if not shapes:
+        return ""
+    words = {"region": "{n}", "located": "{n}, the inclusion the diagnosis located (dashed)",
+             "also fits": "{n}, where it would fit nearly as well (dotted)"}
+    said = [words[s.kind].format(n=s.label) for s in shapes]
+    missing = [s.label for s in shapes if s.region.name not in drawn]
+    text = "Outlines: " + "; ".join(said) + "."
+    if missing:
+        text += f" Not in this image plane: {', '.join(missing)}."
+    return text
+
+
 def score_text(score: float) -> str:
     return "could not be fitted" if not math.isfinite(score) else f"{score:+.1f}"
 

@@ -35,7 +35,8 @@ from app.core.effects.compressibility import NU_NEGLIGIBLE
 from app.core.effects.inclusion import NEGLIGIBLE_RATIO as INCLUSION_RATIO
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
-                                 diagnosis_rows, frame_label, history_rows, parameters_text, verdict_parts)
+                                 diagnosis_rows, frame_label, history_rows, outline_shapes, outlines_note,
+                                 parameters_text, verdict_parts)
 from ..models.session import SessionModel
 from ..style import FORCE_KEY, force_pens, mono_font, region_color, style_plot
 from ..workers import Task
@@ -47,6 +48,7 @@ log = logging.getLogger("elastoid.gui")
 LOCK_REASON = "a model check is running"
 MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
 SUSPECT = "#9e9e9e"  # a difference at a block that disagrees with its neighbours
+OUTLINE = "#39e639"  # the regions' outlines: a green that neither the arrows nor the residual map use
 VERDICT_BG = "#fff3c4"
 ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting",
            "refine": "Refining the inclusion's place", "restore": "Restoring the saved model check"}
@@ -233,13 +235,16 @@ class ModelCheckPanel(Panel):
         row.addSpacing(10)
         self.show_boxes = {}
         for key, text, color in (("measured", "tracked", MEASURED), ("model", "model", MODEL),
-                                 ("difference", "difference", DIFFERENCE)):
+                                 ("difference", "difference", DIFFERENCE), ("outlines", "outlines", "#333333")):
             cb = QCheckBox(text)
             cb.setChecked(True)
             cb.setStyleSheet(f"QCheckBox {{ color: {color}; font-weight: 600; }}")
             cb.toggled.connect(self._draw_frame)
             self.show_boxes[key] = cb
             row.addWidget(cb)
+        self.show_boxes["outlines"].setToolTip(
+            "The regions' outlines on both maps, where the model puts them in each frame; and the inclusion the "
+            "last diagnosis located (dashed), with where it would fit nearly as well (dotted)")
         self.diff_scale = ispin(0, 1000, 0, suffix="x", tip="Difference arrows drawn this many times longer "
                                 "(0: automatic)")
         self.diff_scale.setSpecialValueText("auto")
@@ -261,6 +266,9 @@ class ModelCheckPanel(Panel):
         self.residual_bar.setImageItem(self.residual_image, insert_in=self.residual_plot)
         self.residual_graphics.setMinimumWidth(200)
         maps.addWidget(self.residual_graphics)
+        # the regions' outlines on each map (PlotDataItems made per frame), and a cache of them
+        self.outline_items = {"target": [], "source": []}
+        self._outline_cache: dict = {}
 
         self.vector_graphics = pg.GraphicsLayoutWidget()
         self.vector_plot = _image_plot(self.vector_graphics, "Displacement: tracked, model, difference")
@@ -683,6 +691,8 @@ class ModelCheckPanel(Panel):
 
     # ---- drawing ------------------------------------------------------------------------------------
     def _show(self, snap) -> None:
+        self._snapshot = snap
+        self._outline_cache = {}
         self._show_version(snap)
         self._show_comparison(snap.comparison if snap else None)
         self._show_diagnosis(snap)
@@ -772,6 +782,7 @@ class ModelCheckPanel(Panel):
             self.share_bars_all.setOpts(x=[], height=[])
             self.share_table.setRowCount(0)
             self.frame_note.setText("")
+            self._draw_outlines(None)
             return
         s, cmp = self.session, self.comparison
         c0, r0, c1, r1 = fc.roi_px
@@ -824,6 +835,7 @@ class ModelCheckPanel(Panel):
             for col, v in ((1, this[k]), (2, allf[k]), (3, 100 * cmp.image_region_share.get(n, math.nan))):
                 self.share_table.setItem(k, col, _item(f"{v:.0f}%", align=Qt.AlignRight | Qt.AlignVCenter))
         self.share_table.resizeColumnsToContents()
+        outlined = self._draw_outlines(self.frame_box.currentIndex())
         n_valid, n_out = int(valid.sum()), int(outlier.sum())
         d_kept = diff[kept]
         rms = float(np.sqrt(np.mean((d_kept**2).sum(1)))) if len(d_kept) else math.nan
@@ -835,7 +847,57 @@ class ModelCheckPanel(Panel):
             f"to trust); {out_text}difference {rms:.2f} px RMS, drawn "
             f"{scale:g}x longer. "
             f"Residual map: 0 where the warped source matches the frame, 1 where they are unrelated. "
-            f"Bars: this frame (filled), all frames (dashed).")
+            f"Bars: this frame (filled), all frames (dashed). {outlined}".rstrip())
+
+    def outlines_of(self, k: int, frame: str) -> dict:
+        """The outlines (app.core.compare.outlines) on frame ``k`` of the comparison,
+        ``frame`` "target" (the residual map) or "source" (the vector map), kept
+        until the next comparison or diagnosis is shown."""
+        shapes = outline_shapes(getattr(self, "_snapshot", None))
+        key = (k, frame)
+        if key not in self._outline_cache:
+            self._outline_cache[key] = self.comparison.outlines(k, [o.region for o in shapes], frame)
+        return self._outline_cache[key]
+
+    def _draw_outlines(self, k: int | None) -> str:
+        """Outline the regions on both maps for frame ``k`` (None: clear); returns the legend."""
+        plots = {"target": self.residual_plot, "source": self.vector_plot}
+        for frame, items in self.outline_items.items():
+            for item in items:
+                plots[frame].removeItem(item)
+            items.clear()
+        shapes = outline_shapes(getattr(self, "_snapshot", None))
+        if k is None or not shapes or not self.show_boxes["outlines"].isChecked():
+            return ""
+        # dashes and dots (in pen widths) long enough to tell apart over speckle
+        styles = {"region": (Qt.SolidLine, None), "located": (Qt.DashLine, [4.0, 3.0]),
+                  "also fits": (Qt.DotLine, [1.0, 2.5])}
+        drawn = set()
+        for frame, plot in plots.items():
+            lines = self.outlines_of(k, frame)
+            drawn |= set(lines)
+            for o in shapes:
+                parts = lines.get(o.region.name, [])
+                if not parts:
+                    continue
+                xy = np.vstack([np.vstack([p, [np.nan, np.nan]]) for p in parts])
+                style, dashes = styles[o.kind]
+                pen = pg.mkPen(OUTLINE, width=1.8, style=style)
+                if dashes:
+                    pen.setDashPattern(dashes)
+                item = pg.PlotDataItem(xy[:, 0], xy[:, 1], connect="finite", pen=pen)
+                # the name above the outline's top (the image's rows grow downwards), or below
+                # it when the ROI's top edge cuts the outline
+                top = min((p[np.argmin(p[:, 1])] for p in parts), key=lambda q: q[1])
+                below = top[1] < self.comparison.frames[k].roi_px[1] + 12
+                label = pg.TextItem(html=f"<b>{html.escape(o.label)}</b>", anchor=(0.5, 0.0 if below else 1.0))
+                label.setColor(OUTLINE)
+                label.setPos(float(top[0]), float(top[1]))
+                for it in (item, label):
+                    it.setZValue(5)
+                    plot.addItem(it)
+                    self.outline_items[frame].append(it)
+        return outlines_note(shapes, drawn)
 
     def _show_diagnosis(self, snap) -> None:
         d = snap.diagnosis if snap else None
