@@ -67,7 +67,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from app.core.images import pixel_to_world
+from app.core.images import pixel_to_world, world_to_pixel
 from app.core.similarity import local_similarity
 from app.core.warp import bilinear
 
@@ -426,6 +426,10 @@ class Comparison:
         """:func:`outlines` on frame ``k`` of the comparison; by default of the model's regions."""
         return outlines(self.experiment, self.frames[k], self.regions if regions is None else regions, frame)
 
+    def outside_text(self, k: int, region) -> str:
+        """:func:`outside_text` for frame ``k``."""
+        return outside_text(self.experiment, self.frames[k], region)
+
     def lines(self) -> list[str]:
         out = [f"force misfit {self.force_rms_N:.4f} N RMS (noise {self.force_noise_N:.4f} N)",
                f"displacement misfit {self.displacement_rms_px:.3f} px RMS (tracking noise {self.noise_px:.3f} px)"]
@@ -569,6 +573,27 @@ def outlines(exp, fc: FrameComparison, regions, frame: str = "target") -> dict[s
         ends = np.cumsum([len(ln) for ln in lines])[:-1]
         out[region.name] = [np.column_stack([c0 + st * g[:, 1], r0 + st * g[:, 0]]) for g in np.split(q, ends)]
     return out
+
+
+def outside_text(exp, fc: FrameComparison, region) -> str:
+    """Where a region that has no outline in frame ``fc``'s ROI (:func:`outlines`)
+    lies, in words: "3.2 mm beside the image plane" for a sphere the plane does not
+    cut; else where its centre lies from the ROI in the source image ("right of the
+    ROI"), or "outside the ROI"."""
+    lat = np.asarray(exp.probe.lateral_axis, float)
+    normal = np.cross(lat, [0.0, 0.0, 1.0])
+    origin = pixel_to_world(np.array([0.0]), np.array([0.0]), exp, fc.source_displacement_mm)[0]
+    if region.kind == "sphere":
+        gap = abs(float(np.dot(np.asarray(region.center_mm, float) - origin, normal))) - float(region.radius_mm)
+        if gap >= 0.0:
+            return f"{gap:.1f} mm beside the image plane"
+    if region.center_mm is None:
+        return "outside the ROI"
+    cols, rows = world_to_pixel(np.asarray([region.center_mm], float), exp, fc.source_displacement_mm)
+    c0, r0, c1, r1 = fc.roi_px
+    sides = [w for w, beyond in (("left of", cols[0] < c0), ("right of", cols[0] >= c1), ("above", rows[0] < r0),
+                                 ("below", rows[0] >= r1)) if beyond]
+    return f"{' and '.join(sides)} the ROI" if sides else "outside the ROI"
 
 
 def _model_at(problem, params, a, pair, world):

@@ -182,7 +182,7 @@ def test_region_outlines_lie_on_the_region_and_follow_the_models_displacement(tm
     the model's own displacement at the material points (the reduced model's point
     operator, not the warp's inverse thin-plate spline the outline is made from)
     carries the source outline. A sphere beside the image plane has no outline."""
-    from app.core.compare import compare, outlines
+    from app.core.compare import compare, outlines, outside_text
     from app.core.effects.model import EffectProblem
     from app.core.geometry import Region
     from app.core.images import pixel_to_world
@@ -201,6 +201,10 @@ def test_region_outlines_lie_on_the_region_and_follow_the_models_displacement(tm
     beside = Region("I", "sphere", center_mm=(20.0, 28.0, 18.0), radius_mm=6.0)  # 2 mm short of the plane
     source = outlines(exp, fc, (*cmp.regions, beside), "source")
     assert set(source) == {"A"} and len(source["A"]) == 1  # the background and the sphere beside: none
+    assert outside_text(exp, fc, beside) == "2.0 mm beside the image plane"
+    c0, r0, c1, r1 = fc.roi_px
+    deep_right = pixel_to_world(np.array([c1 + 30.0]), np.array([r1 + 30.0]), exp, 0.0)[0]
+    assert outside_text(exp, fc, beside.with_center(deep_right)) == "right of and below the ROI"
     ring = source["A"][0]
     assert np.allclose(ring[0], ring[-1])  # closed: A lies inside the ROI
     world = pixel_to_world(ring[:, 0], ring[:, 1], exp, 0.0)

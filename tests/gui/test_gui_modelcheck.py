@@ -362,15 +362,22 @@ def test_the_maps_outline_the_inclusion_the_diagnosis_located(window, visco_expe
         assert np.abs(np.linalg.norm(world - center, axis=1) - radius).max() < 0.01
     note = panel.frame_note.text()
     assert "Outlines: A; I?, the inclusion the diagnosis located (dashed); I? also, where it would fit nearly as " \
-           "well (dotted)." in note and "Not in this image plane" not in note
+           "well (dotted)." in note and "Not drawn" not in note
     assert len([it for it in panel.outline_items["target"] if not hasattr(it, "textItem")]) == 3
 
-    # a located sphere beside the image plane (y = 20): said, not drawn
-    beside = {"name": "I", "center_mm": [28.0, 26.0, 14.0], "radius_mm": 3.0}
+    # a located sphere beside the image plane (y = 20), and a place in it but beside the ROI:
+    # said where they lie, not drawn
+    c0, r0, c1, r1 = fc.roi_px
+    right = pixel_to_world(np.array([c1 + 40.0]), np.array([0.5 * (r0 + r1)]), exp, fc.source_displacement_mm)[0]
+    beside = {"name": "I", "center_mm": [28.0, 26.0, 14.0], "radius_mm": 3.0,
+              "also_fits": {"center_mm": right.tolist(), "radius_mm": 2.0, "stiffer": False, "explained": 90.0,
+                            "explained_here": 100.0}}
     panel._show(panel.model.apply((None, None, Snapshot(snap0.history, snap0.comparison, diagnosis(beside), 0,
                                                         "diagnose", "diagnosis: verdict inclusion"))))
     names = [it.textItem.toPlainText() for it in panel.outline_items["source"] if hasattr(it, "textItem")]
-    assert names == ["A"] and "Not in this image plane: I?." in panel.frame_note.text()
+    assert names == ["A"]
+    assert "Not drawn: I? (3.0 mm beside the image plane), I? also (right of the ROI)." in panel.frame_note.text(), \
+        panel.frame_note.text()
     # a diagnosis of another version outlines nothing but the model's regions
     panel._show(panel.model.apply((None, None, Snapshot(snap0.history, snap0.comparison, diagnosis(located), 3,
                                                         "diagnose", "diagnosis: verdict inclusion"))))

@@ -359,18 +359,19 @@ def outline_shapes(snapshot) -> list[Outline]:
     return out
 
 
-def outlines_note(shapes: list[Outline], drawn) -> str:
-    """The maps' legend for the outlines, and which of them this frame's image
-    plane does not cut (``drawn``: the names outlined)."""
+def outlines_note(shapes: list[Outline], drawn, where=None) -> str:
+    """The maps' legend for the outlines, and which of them have none in this
+    frame's ROI (``drawn``: the names outlined), each with where it lies
+    (``where(region)``, e.g. app.core.compare.outside_text) when given."""
     if not shapes:
         return ""
     words = {"region": "{n}", "located": "{n}, the inclusion the diagnosis located (dashed)",
              "also fits": "{n}, where it would fit nearly as well (dotted)"}
     said = [words[s.kind].format(n=s.label) for s in shapes]
-    missing = [s.label for s in shapes if s.region.name not in drawn]
+    missing = [f"{s.label} ({where(s.region)})" if where else s.label for s in shapes if s.region.name not in drawn]
     text = "Outlines: " + "; ".join(said) + "."
     if missing:
-        text += f" Not in this image plane: {', '.join(missing)}."
+        text += f" Not drawn: {', '.join(missing)}."
     return text
 
 

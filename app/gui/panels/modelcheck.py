@@ -897,7 +897,7 @@ class ModelCheckPanel(Panel):
                     it.setZValue(5)
                     plot.addItem(it)
                     self.outline_items[frame].append(it)
-        return outlines_note(shapes, drawn)
+        return outlines_note(shapes, drawn, lambda region: self.comparison.outside_text(k, region))
 
     def _show_diagnosis(self, snap) -> None:
         d = snap.diagnosis if snap else None
