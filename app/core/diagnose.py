@@ -1476,8 +1476,9 @@ def _evidence(eff, problem, base: Candidate, cand: Candidate, tracked, lik0, lik
         inc = cand.inclusion
         g = InclusionGuess(inc["name"], tuple(inc["center_mm"]), inc["radius_mm"], True, 0.0)
         top = P.exp.specimen.size_mm[2]
-        ratio = cand.parameters[f"E_{inc['name']}_kPa"] / cand.parameters[_host(P, inc["center_mm"])]
-        return evidence(g, top - inc["center_mm"][2], ratio, before, after, also_fits_text(inc, top))
+        e_kPa = cand.parameters[f"E_{inc['name']}_kPa"]
+        ratio = e_kPa / cand.parameters[_host(P, inc["center_mm"])]
+        return evidence(g, top - inc["center_mm"][2], ratio, before, after, also_fits_text(inc, top), e_kPa)
     return ""
 
 

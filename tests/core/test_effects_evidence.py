@@ -27,6 +27,13 @@ def test_the_inclusion_explains_the_misfit_only_when_the_misfit_falls():
     assert "does not explain" in inclusion_evidence(g, 14.0, 1.3, 0.891, 0.889)  # unchanged to the digit shown
     # seen on a phantom without an inclusion: 0.46 -> 0.45 px is little
     assert "0.7 times as stiff it explains little of the misfit" in inclusion_evidence(g, 4.0, 0.7, 0.463, 0.453)
+    # seen at paper size with nothing hidden (boxed-none): the sphere's modulus at the fit's bound
+    rigid = inclusion_evidence(g, 39.0, 404.7, 0.27, 0.26, e_kPa=10000.0)
+    assert "as an inclusion 404.7 times stiffer (the fit's upper bound, 10,000 kPa: read it as much stiffer) " \
+           "it explains little" in rigid, rigid
+    assert "0.006 times as stiff (the fit's lower bound, 0.1 kPa: read it as much softer)" in \
+        inclusion_evidence(g, 9.0, 0.006, 0.3, 0.1, e_kPa=0.1)
+    assert "bound" not in inclusion_evidence(g, 16.0, 3.2, 0.32, 0.05, e_kPa=48.0)
 
 
 def test_the_hyperelastic_evidence_says_what_large_deformation_would_change():

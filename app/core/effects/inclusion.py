@@ -217,18 +217,26 @@ def negligible(e_inclusion_kPa: float, tissue) -> str:
 
 
 def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: float, after_px: float,
-             also: str = "") -> str:
+             also: str = "", e_kPa: float | None = None) -> str:
     """The inclusion's sentence: where the scan put it, what it does, and whether
     it explains the misfit (only when the displacement misfit falls with it).
     ``before_px``: the current model's misfit on the inclusion's mesh (what the
     diagnosis compares the inclusion with); ``also``: a clause saying where else it
-    fits (:func:`also_fits_text`), added after a "but"."""
+    fits (:func:`also_fits_text`), added after a "but"; ``e_kPa``: its fitted
+    modulus, which the sentence calls a bound of the fit when it reached one (the
+    ratio then says only "much stiffer", or "much softer")."""
     from app.core.effects import misfit_change
+    from app.core.identify import BOUNDS_KPA
 
     also = f"; but {also}" if also else ""
     where = f"a region the experiment does not describe, about {2 * guess.radius_mm:.0f} mm across at " \
             f"{depth_mm:.0f} mm depth"
-    stiffness = f"{e_ratio:.1f} times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
+    stiffness = f"{e_ratio:.1f}" if e_ratio >= 0.1 else f"{e_ratio:.2g}"  # not "0.0 times as stiff"
+    stiffness += f" times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
+    lo, hi = BOUNDS_KPA
+    if e_kPa is not None and (e_kPa >= 0.99 * hi or e_kPa <= 1.01 * lo):
+        stiffness += (f" (the fit's {'upper' if e_kPa >= 0.99 * hi else 'lower'} bound, {f'{e_kPa:,.0f}' if e_kPa >= 10 else f'{e_kPa:g}'} kPa: "
+                      f"read it as much {'stiffer' if e_ratio >= 1 else 'softer'})")
     moved = misfit_change(before_px, after_px)
     change = f"on the same mesh the displacement misfit {moved}"
     if moved.startswith("falls"):  # as the sentence reads it: lower to the digits shown
