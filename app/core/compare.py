@@ -397,6 +397,10 @@ class FrameComparison:
     # where every OUTLINE_STEP_PX-th pixel of the target ROI came from in the source
     # frame, by the model: (rows, cols, 2) of (col, row) px (see outlines)
     source_of_target_px: np.ndarray | None = None
+    # the model's regions outlined (see outlines): {"source": {...}, "target": {...}}, made
+    # with the comparison, on the worker thread (a region read from a surface file
+    # takes seconds: a winding number per grid point)
+    region_outlines: dict = field(default_factory=dict)
 
     @property
     def difference_px(self) -> np.ndarray:
@@ -424,6 +428,8 @@ class Comparison:
 
     def outlines(self, k: int, regions=None, frame: str = "target") -> dict[str, list[np.ndarray]]:
         """:func:`outlines` on frame ``k`` of the comparison; by default of the model's regions."""
+        if regions is None and frame in self.frames[k].region_outlines:
+            return self.frames[k].region_outlines[frame]
         return outlines(self.experiment, self.frames[k], self.regions if regions is None else regions, frame)
 
     def outside_text(self, k: int, region) -> str:
@@ -492,9 +498,12 @@ def compare(problem, params: dict, tracked: TrackedField | None = None, window: 
             img_tot[n] += float(rr[lab_px == k].sum())
         all_res.append(diff[tp.valid])
         f = problem.exp.frames[pair.target]
-        frames.append(FrameComparison(pair.source, pair.target, f.time_s, f.displacement_mm, tuple(problem.roi), w,
-                                      pair.target_roi, resid, tp.points_px, tp.measured_px, model, tp.valid,
-                                      {n: v / s for n, v in share.items()}, out, pair.d_source_mm, src_of_tgt))
+        fc = FrameComparison(pair.source, pair.target, f.time_s, f.displacement_mm, tuple(problem.roi), w,
+                             pair.target_roi, resid, tp.points_px, tp.measured_px, model, tp.valid,
+                             {n: v / s for n, v in share.items()}, out, pair.d_source_mm, src_of_tgt)
+        regions = problem.exp.specimen.regions
+        frames.append(replace(fc, region_outlines={side: outlines(problem.exp, fc, regions, side)
+                                                   for side in ("source", "target")}))
     s = sum(tot.values()) or 1.0
     si = sum(img_tot.values()) or 1.0
     allr = np.vstack(all_res) if all_res else np.zeros((0, 2))

@@ -55,7 +55,12 @@ class Region:
                 np.einsum("ij,ij->i", radial, radial) <= self.radius_mm**2
             )
         if self.kind == "surface":
-            return _inside_closed_surface(p, *self.surface_mesh)
+            # the winding number costs points x triangles: only points in the surface's box can be inside
+            verts, faces = self.surface_mesh
+            box = np.all((p >= verts.min(axis=0)) & (p <= verts.max(axis=0)), axis=1)
+            out = np.zeros(len(p), bool)
+            out[box] = _inside_closed_surface(p[box], verts, faces)
+            return out
         raise ValueError(f"unknown region kind {self.kind!r}")
 
     def volume_mm3(self, specimen_size_mm=None) -> float:

@@ -213,6 +213,11 @@ def test_region_outlines_lie_on_the_region_and_follow_the_models_displacement(tm
     assert np.allclose(world[:, 1], 20.0)
 
     target = outlines(exp, fc, cmp.regions, "target")["A"]
+    # the comparison outlined its model's regions as it was made (the window draws those)
+    for side, lines in (("source", [ring]), ("target", target)):
+        kept = cmp.outlines(0, None, side)
+        assert kept is fc.region_outlines[side] and set(kept) == {"A"}
+        assert len(kept["A"]) == 1 and np.array_equal(kept["A"][0], lines[0])
     assert len(target) == 1
     pts = ring[::3]
     op = problem.rm.point_operator(pixel_to_world(pts[:, 0], pts[:, 1], exp, 0.0))

@@ -853,10 +853,15 @@ class ModelCheckPanel(Panel):
         """The outlines (app.core.compare.outlines) on frame ``k`` of the comparison,
         ``frame`` "target" (the residual map) or "source" (the vector map), kept
         until the next comparison or diagnosis is shown."""
-        shapes = outline_shapes(getattr(self, "_snapshot", None))
         key = (k, frame)
         if key not in self._outline_cache:
-            self._outline_cache[key] = self.comparison.outlines(k, [o.region for o in shapes], frame)
+            # the model's regions were outlined with the comparison (on the worker thread); the
+            # diagnosis' spheres are outlined here (milliseconds)
+            lines = dict(self.comparison.outlines(k, None, frame))
+            extra = [o.region for o in outline_shapes(getattr(self, "_snapshot", None)) if o.kind != "region"]
+            if extra:
+                lines.update(self.comparison.outlines(k, extra, frame))
+            self._outline_cache[key] = lines
         return self._outline_cache[key]
 
     def _draw_outlines(self, k: int | None) -> str:
