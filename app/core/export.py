@@ -117,6 +117,47 @@ def overlay_rgb(warped: np.ndarray, target: np.ndarray) -> np.ndarray:
     return (rgb * 255).astype(np.uint8)
 
 
+# matplotlib's "inferno" (the window's residual map) at nine points, interpolated between
+_INFERNO = np.array([(0, 0, 4), (31, 12, 72), (85, 15, 109), (136, 34, 106), (186, 54, 85), (227, 89, 51),
+                     (249, 140, 10), (249, 201, 50), (252, 255, 164)], float) / 255.0
+OUTLINE_RGB = (57, 230, 57)  # the window's outline green
+# on and off lengths (px of the drawn image) of the outlines' line styles
+_DASHES = {"region": None, "located": (8.0, 6.0), "also fits": (2.0, 5.0)}
+
+
+def residual_map_rgb(residual: np.ndarray, frame_roi: np.ndarray, lines=(), scale: int = 2) -> np.ndarray:
+    """The window's residual map as an image (uint8 RGB, ``scale`` times the ROI):
+    1 - local correlation in inferno over the dimmed frame (the frame alone where
+    the map is NaN), and ``lines``, each (polyline (n, 2) of (col, row) px in the
+    ROI, kind: "region" solid, "located" dashed, "also fits" dotted), in green."""
+    res = np.asarray(residual, float)
+    f = np.asarray(frame_roi, float)
+    lo, hi = np.percentile(f, [1, 99])
+    grey = 0.55 * np.clip((f - lo) / max(hi - lo, 1e-12), 0, 1)
+    t = np.clip(np.nan_to_num(res, nan=0.0), 0.0, 1.0) * (len(_INFERNO) - 1)
+    i = np.minimum(t.astype(int), len(_INFERNO) - 2)
+    w = (t - i)[..., None]
+    color = (1 - w) * _INFERNO[i] + w * _INFERNO[i + 1]
+    rgb = np.where(np.isfinite(res)[..., None], 0.15 * grey[..., None] + 0.85 * color, grey[..., None])
+    rgb = np.repeat(np.repeat(rgb, scale, axis=0), scale, axis=1)
+    H, W = rgb.shape[:2]
+    for line, kind in lines:
+        pts = (np.asarray(line, float) + 0.5) * scale  # pixel centres
+        seg = np.diff(pts, axis=0)
+        length = np.hypot(seg[:, 0], seg[:, 1])
+        along = np.concatenate([[0.0], np.cumsum(length)])
+        s = np.arange(0.0, along[-1] + 0.25, 0.25)
+        xy = np.column_stack([np.interp(s, along, pts[:, 0]), np.interp(s, along, pts[:, 1])])
+        dash = _DASHES[kind]
+        if dash is not None:
+            xy = xy[np.mod(s, dash[0] + dash[1]) < dash[0]]
+        for dc, dr in ((0, 0), (1, 0), (0, 1), (1, 1)):  # two pixels wide
+            c = np.clip(np.floor(xy[:, 0] - 0.5).astype(int) + dc, 0, W - 1)
+            r = np.clip(np.floor(xy[:, 1] - 0.5).astype(int) + dr, 0, H - 1)
+            rgb[r, c] = np.asarray(OUTLINE_RGB) / 255.0
+    return np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
+
+
 def _png_b64(rgb: np.ndarray) -> str:
     import imageio.v3 as iio
 
@@ -229,6 +270,14 @@ data allow).</p>
 <th>force beyond noise (N)</th><th>displacement beyond noise (px)</th><th>chi2</th><th>note</th></tr>
 {"".join(rows)}</table>
 <h3>Error across versions</h3>{chart}"""]
+    maps = mc.get("maps") or []
+    if maps:
+        figs = "".join(f'<figure><img src="data:image/png;base64,{_png_b64(m["rgb"])}"/>'
+                       f"<figcaption>{e(m['caption'])}</figcaption></figure>" for m in maps)
+        out.append(f"""<h3>Where the current model fails</h3>
+<p>Per frame, the residual map over the ROI: where the source warped by the model still disagrees with the
+frame (dark: they match; yellow: unrelated). Green outlines: where the model puts its regions in that frame;
+dashed, an inclusion the last diagnosis located; dotted, where it would fit nearly as well.</p>{figs}""")
     d = mc.get("diagnosis")
     if d is not None:
         bold = ' style="font-weight:bold"'

@@ -94,3 +94,29 @@ def test_html_report_holds_the_model_check(tmp_path):
     plain = write_report_html(tmp_path / "p.html", experiment=exp, parameters={"E_B_kPa": 17.9},
                               cost={"nmi": 1.05}).read_text()
     assert "<h2>Model check</h2>" not in plain and "17.90" in plain
+
+
+def test_the_residual_map_image_has_the_windows_colours_and_outlines():
+    """The report's residual map: inferno's ends at 0 and 1, the dimmed frame where
+    the map is NaN, a solid outline green all along, a dashed one green only in part."""
+    from app.core.export import OUTLINE_RGB, residual_map_rgb
+
+    res = np.zeros((40, 60))
+    res[:, 30:] = 1.0
+    res[:5, :5] = np.nan
+    frame = np.tile(np.linspace(0.0, 1.0, 60), (40, 1))
+    square = np.array([[10.0, 10], [20, 10], [20, 20], [10, 20], [10, 10]])
+    across = np.array([[2.0, 30], [57, 30]])
+    rgb = residual_map_rgb(res, frame, [(square, "region"), (across, "located")], scale=2)
+    assert rgb.shape == (80, 120, 3) and rgb.dtype == np.uint8
+    green = np.all(rgb == OUTLINE_RGB, axis=-1)
+    lo, hi = np.percentile(frame, [1, 99])
+    grey = 0.55 * 255 * np.clip((frame - lo) / (hi - lo), 0, 1)  # the frame, dimmed
+    # 0: inferno's black and 1: its pale yellow, over 15% of the frame
+    assert np.allclose(rgb[70, 40], 0.15 * grey[35, 20] + 0.85 * np.array([0, 0, 4]), atol=1)
+    assert np.allclose(rgb[70, 100], 0.15 * grey[35, 50] + 0.85 * np.array([252, 255, 164]), atol=1)
+    assert np.allclose(rgb[9, 9], grey[4, 4], atol=1) and np.ptp(rgb[9, 9]) == 0  # NaN: the frame alone
+    # the square's edges (ROI px 10..20, drawn at 2x around pixel centres) are green throughout
+    assert green[21:41, 21].all() and green[21, 21:41].all() and not green[25:37, 25:37].any()
+    row = green[61]  # the dashed line along ROI row 30: dashes and gaps
+    assert 0.4 < row[5:115].mean() < 0.8

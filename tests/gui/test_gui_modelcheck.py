@@ -220,6 +220,10 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     assert "+ viscoelastic" in section and "+ probe-slip" in section
     assert "warning: probe-slip" in section  # the version the diagnosis did not support
     assert section.count("<polyline") == 2  # the errors across versions: displacement and force
+    # where the current version fails: each compared frame's residual map, outlined, with its numbers
+    fails = section[section.index("<h3>Where the current model fails</h3>"):]
+    assert fails.count("<img ") == panel.frame_box.count() == 2
+    assert "frame 1 (1.50 mm) vs 0: displacement difference" in fails and "Outlines: A." in fails
     d = panel.model.snapshot.diagnosis
     assert "Last diagnosis (of version 0" in section and "<b>Verdict: viscoelastic</b>" in section
     for c in d.candidates:

@@ -359,6 +359,19 @@ def outline_shapes(snapshot) -> list[Outline]:
     return out
 
 
+def frame_outlines(snapshot, k: int, frame: str) -> dict:
+    """The outlines of :func:`outline_shapes` on frame ``k`` of the snapshot's
+    comparison (app.core.compare.outlines), by region name: the model's regions
+    as the comparison outlined them (on the worker thread), the diagnosis'
+    spheres now (milliseconds)."""
+    cmp = snapshot.comparison
+    lines = dict(cmp.outlines(k, None, frame))
+    extra = [o.region for o in outline_shapes(snapshot) if o.kind != "region"]
+    if extra:
+        lines.update(cmp.outlines(k, extra, frame))
+    return lines
+
+
 def outlines_note(shapes: list[Outline], drawn, where=None) -> str:
     """The maps' legend for the outlines, and which of them have none in this
     frame's ROI (``drawn``: the names outlined), each with where it lies
@@ -417,7 +430,7 @@ def report_data(snapshot) -> dict | None:
     for row, v in zip(versions, h.versions):
         row["force_excess_N"] = v.misfit.get("force_excess_N")
         row["displacement_excess_px"] = v.misfit.get("displacement_excess_px")
-    out = {"current": h.current, "versions": versions, "diagnosis": None}
+    out = {"current": h.current, "versions": versions, "diagnosis": None, "maps": report_maps(snapshot)}
     d = snapshot.diagnosis
     if d is not None:
         head, rest, tie = verdict_parts(d)
@@ -425,6 +438,30 @@ def report_data(snapshot) -> dict | None:
                             "tie": tie, "noise": d.noise.describe(), "seconds": d.seconds,
                             "candidates": [{k: r[k] for k in ("rank", "effect", "title", "score_text", "parameters",
                                                               "evidence", "verdict")} for r in diagnosis_rows(d)]}
+    return out
+
+
+def report_maps(snapshot) -> list[dict]:
+    """The current version's residual map of each compared frame, with the Compare
+    tab's outlines, as images for the report: [{"rgb", "caption"}]."""
+    from app.core.export import residual_map_rgb
+
+    cmp = snapshot.comparison if snapshot is not None else None
+    if cmp is None:
+        return []
+    shapes = outline_shapes(snapshot)
+    out = []
+    for k, fc in enumerate(cmp.frames):
+        lines = frame_outlines(snapshot, k, "target")
+        c0, r0 = fc.roi_px[:2]
+        drawn = [(p - [c0, r0], o.kind) for o in shapes for p in lines.get(o.region.name, [])]
+        kept = np.asarray(fc.valid, bool) & ~np.asarray(fc.outlier, bool)
+        diff = np.asarray(fc.difference_px, float)[kept]
+        rms = float(np.sqrt(np.mean((diff**2).sum(1)))) if len(diff) else math.nan
+        shares = ", ".join(f"{n} {100 * v:.0f}%" for n, v in fc.region_share.items())
+        caption = (f"{frame_label(fc)}: displacement difference {rms:.2f} px RMS; share of the misfit {shares}. "
+                   f"{outlines_note(shapes, set(lines), lambda region, k=k: cmp.outside_text(k, region))}").strip()
+        out.append({"rgb": residual_map_rgb(fc.residual_map, fc.target_roi, drawn), "caption": caption})
     return out
 
 

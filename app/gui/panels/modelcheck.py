@@ -35,8 +35,8 @@ from app.core.effects.compressibility import NU_NEGLIGIBLE
 from app.core.effects.inclusion import NEGLIGIBLE_RATIO as INCLUSION_RATIO
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
-                                 diagnosis_rows, frame_label, history_rows, outline_shapes, outlines_note,
-                                 parameters_text, verdict_parts)
+                                 diagnosis_rows, frame_label, frame_outlines, history_rows, outline_shapes,
+                                 outlines_note, parameters_text, verdict_parts)
 from ..models.session import SessionModel
 from ..style import FORCE_KEY, force_pens, mono_font, region_color, style_plot
 from ..workers import Task
@@ -269,6 +269,7 @@ class ModelCheckPanel(Panel):
         # the regions' outlines on each map (PlotDataItems made per frame), and a cache of them
         self.outline_items = {"target": [], "source": []}
         self._outline_cache: dict = {}
+        self._snapshot = None  # what _show showed last (the outlines depend on its diagnosis)
 
         self.vector_graphics = pg.GraphicsLayoutWidget()
         self.vector_plot = _image_plot(self.vector_graphics, "Displacement: tracked, model, difference")
@@ -855,13 +856,7 @@ class ModelCheckPanel(Panel):
         until the next comparison or diagnosis is shown."""
         key = (k, frame)
         if key not in self._outline_cache:
-            # the model's regions were outlined with the comparison (on the worker thread); the
-            # diagnosis' spheres are outlined here (milliseconds)
-            lines = dict(self.comparison.outlines(k, None, frame))
-            extra = [o.region for o in outline_shapes(getattr(self, "_snapshot", None)) if o.kind != "region"]
-            if extra:
-                lines.update(self.comparison.outlines(k, extra, frame))
-            self._outline_cache[key] = lines
+            self._outline_cache[key] = frame_outlines(self._snapshot, k, frame)
         return self._outline_cache[key]
 
     def _draw_outlines(self, k: int | None) -> str:
@@ -871,7 +866,7 @@ class ModelCheckPanel(Panel):
             for item in items:
                 plots[frame].removeItem(item)
             items.clear()
-        shapes = outline_shapes(getattr(self, "_snapshot", None))
+        shapes = outline_shapes(self._snapshot)
         if k is None or not shapes or not self.show_boxes["outlines"].isChecked():
             return ""
         # dashes and dots (in pen widths) long enough to tell apart over speckle
