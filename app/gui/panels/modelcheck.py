@@ -49,6 +49,7 @@ LOCK_REASON = "a model check is running"
 MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
 SUSPECT = "#9e9e9e"  # a difference at a block that disagrees with its neighbours
 OUTLINE = "#39e639"  # the regions' outlines: a green that neither the arrows nor the residual map use
+OUTLINE_TEXT = "#1f8f1f"  # the same green, dark enough to read on the window's light background
 VERDICT_BG = "#fff3c4"
 ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting",
            "refine": "Refining the inclusion's place", "restore": "Restoring the saved model check"}
@@ -235,7 +236,7 @@ class ModelCheckPanel(Panel):
         row.addSpacing(10)
         self.show_boxes = {}
         for key, text, color in (("measured", "tracked", MEASURED), ("model", "model", MODEL),
-                                 ("difference", "difference", DIFFERENCE), ("outlines", "outlines", "#333333")):
+                                 ("difference", "difference", DIFFERENCE), ("outlines", "outlines", OUTLINE_TEXT)):
             cb = QCheckBox(text)
             cb.setChecked(True)
             cb.setStyleSheet(f"QCheckBox {{ color: {color}; font-weight: 600; }}")
@@ -890,7 +891,8 @@ class ModelCheckPanel(Panel):
                 # it when the ROI's top edge cuts the outline
                 top = min((p[np.argmin(p[:, 1])] for p in parts), key=lambda q: q[1])
                 below = top[1] < self.comparison.frames[k].roi_px[1] + 12
-                label = pg.TextItem(html=f"<b>{html.escape(o.label)}</b>", anchor=(0.5, 0.0 if below else 1.0))
+                label = pg.TextItem(html=f"<b>{html.escape(o.label)}</b>", anchor=(0.5, 0.0 if below else 1.0),
+                                    fill=pg.mkBrush(0, 0, 0, 120))  # readable over bright speckle
                 label.setColor(OUTLINE)
                 label.setPos(float(top[0]), float(top[1]))
                 for it in (item, label):
