@@ -12,14 +12,9 @@ and the share of the best's it explains (at RIVAL_SHARE or more the place is
 reported uncertain), and the scan's own wall time.
 
 Measured 2026-11-29 on the paper-size experiments of bench/paper_effects.py and
-the blind seeds (docs/model-check.md, "The inclusion locator"): with one
-pattern per sphere, of the hidden spheres only the out-of-view seed's rival
-reached the share (0.94), then seed 17001's (0.88, its sphere 0.9 mm from the
-truth). With one pattern per host region ("Split by host"), of 34
-experiments: the out-of-view seed 0.94, and four where the inclusion is not
-the verdict (the demo 0.94, small-slide 0.98, boxed-slip 0.92, a seed with
-nothing hidden 0.91); 17001 0.89. The scan took 3.4-4.1 s on the 90 x 90 x
-96 mm phantom, 8.7-9.5 s on the wide block and 17-18 s on the boxed one.
+four blind seeds (docs/model-check.md, "The inclusion locator"): only the
+out-of-view seed's rival reaches the share (0.94); the next are the demo's
+(0.89) and seed 17001's (0.88, its sphere 0.9 mm from the truth).
 """
 
 from __future__ import annotations

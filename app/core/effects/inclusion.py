@@ -27,22 +27,6 @@ of the Huber loss (so a block misfit by 8 sigma still counts, linearly), the
 scan put them 0.9, 1.3 and 1.4 mm from it (docs/model-check.md, "The inclusion
 locator").
 
-Split by host. A sphere that straddles a described region's boundary replaces
-tissue of two moduli with one: inside a stiff region A it may be softer than A
-and stiffer than the B beside it. Its change is then of opposite signs in its
-two parts, which one amplitude cannot fit. So each sphere has one pattern per
-described region it lies in, each with its own amplitude (a sphere in one region
-has one, as before); it counts as stiffer or softer by the part in the region
-of its centre. On a blind paper-size seed with a 50 kPa sphere mostly inside the
-63 kPa tumour (seed 19003) the single pattern put the sphere 7.6 mm from the
-truth, 1.4 times stiffer than B, and the verdict was none; the truth's own
-sphere ranked 85th. With a pattern per host the truth ranked 3rd and the best
-sphere sat 1.6 mm from it: the verdict became inclusion, E_I 48 kPa for 50.
-Of 33 other paper-size experiments the located sphere moved on three: seed
-19002 (a sphere touching A: 1.2 to 2.4 mm from the truth, its fall 3.4x to
-7.0x) and two with no hidden sphere, whose verdicts stayed (docs/model-check.md,
-"Split by host").
-
 The region is a sphere added to the specimen (``Specimen.with_region``), meshed
 as a new region; its modulus E_<name>_kPa becomes a parameter. The diagnosis
 charges it four parameters: the modulus, two centre coordinates and the radius.
@@ -392,35 +376,23 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=N
         y = float(exp.probe.center_mm[1])
         spheres = candidate_spheres(lo, hi, y, size, radii_mm, step, capping_width(lo, hi, problem._lat, len(E)))
         scored = []
-        n_reg = len(E)
         for k0 in range(0, len(spheres), 32):
             if cancel is not None and cancel.is_set():
                 raise Cancelled("inclusion scan cancelled")
-            # one pattern per described region the sphere lies in (module docstring, "Split by host")
-            chunk, ws, where = [], [], []
+            chunk, ws = [], []
             for c, rad in spheres[k0 : k0 + 32]:
                 w = (np.linalg.norm(xq - c, axis=2) < rad).astype(float)
-                if w.sum() < 1:
-                    continue
-                host = int(paint_labels(np.asarray([c], float), exp.specimen.regions)[0])
-                chunk.append((c, rad, host))
-                for k in range(n_reg):
-                    part = w * (lab == k)[:, None]
-                    if part.any():
-                        ws.append(part)
-                        where.append((len(chunk) - 1, k))
+                if w.sum() >= 1:
+                    chunk.append((c, rad))
+                    ws.append(w)
             if not ws:
                 continue
-            cols = patterns(ws)
-            J = np.zeros((len(r), n_reg, len(chunk)))
-            for col, (j, k) in enumerate(where):
-                J[:, k, j] = cols[:, col]
-            X = np.concatenate([np.repeat(R[:, :, None], len(chunk), axis=2), J], axis=1)
+            J = patterns(ws)
+            X = np.concatenate([np.repeat(R[:, :, None], J.shape[1], axis=2), J[:, None, :]], axis=1)
             loss, coef = huber_fits(X, r, huber_c)
-            for j, (c, rad, host) in enumerate(chunk):
-                if np.any(J[:, :, j]):  # gain: the loss the sphere's patterns remove (chi2 units)
-                    amp = float(coef[n_reg + host, j] if np.any(J[:, host, j]) else coef[n_reg:, j].sum())
-                    scored.append((base_loss - float(loss[j]), c, rad, amp))
+            for (c, rad), lj, amp, Jc in zip(chunk, loss, coef[-1], J.T):
+                if Jc @ Jc > 0:  # gain: the loss the sphere's pattern removes (chi2 units)
+                    scored.append((base_loss - float(lj), c, rad, float(amp)))
     finally:
         fac.free()
     if not scored:
