@@ -407,6 +407,17 @@ class FrameComparison:
         """measured - model (the vector map)."""
         return self.measured_px - self.model_px
 
+    @property
+    def kept(self) -> np.ndarray:
+        """The valid blocks that are not tracking outliers (what the shares count)."""
+        return np.asarray(self.valid, bool) & ~np.asarray(self.outlier, bool)
+
+    @property
+    def difference_rms_px(self) -> float:
+        """RMS of the difference over the kept blocks (NaN when none is kept)."""
+        d = np.asarray(self.difference_px, float)[self.kept]
+        return float(np.sqrt(np.mean((d**2).sum(1)))) if len(d) else math.nan
+
 
 @dataclass(frozen=True)
 class Comparison:

@@ -104,16 +104,18 @@ def write_feb(path: str | Path, mesh: TetMesh, parameters: dict, nu: float = 0.4
     return Path(path)
 
 
+def _norm(a) -> np.ndarray:
+    """Grey levels scaled to [0, 1] between the 1st and 99th percentiles."""
+    a = np.asarray(a, float)
+    lo, hi = np.percentile(a, [1, 99])
+    return np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1)
+
+
 def overlay_rgb(warped: np.ndarray, target: np.ndarray) -> np.ndarray:
     """The paper's subtraction view: target in red, warped source in green (uint8 RGB)."""
-    def norm(a):
-        a = np.asarray(a, float)
-        lo, hi = np.percentile(a, [1, 99])
-        return np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1)
-
     rgb = np.zeros(target.shape + (3,))
-    rgb[..., 0] = norm(target)
-    rgb[..., 1] = norm(warped)
+    rgb[..., 0] = _norm(target)
+    rgb[..., 1] = _norm(warped)
     return (rgb * 255).astype(np.uint8)
 
 
@@ -131,9 +133,7 @@ def residual_map_rgb(residual: np.ndarray, frame_roi: np.ndarray, lines=(), scal
     the map is NaN), and ``lines``, each (polyline (n, 2) of (col, row) px in the
     ROI, kind: "region" solid, "located" dashed, "also fits" dotted), in green."""
     res = np.asarray(residual, float)
-    f = np.asarray(frame_roi, float)
-    lo, hi = np.percentile(f, [1, 99])
-    grey = 0.55 * np.clip((f - lo) / max(hi - lo, 1e-12), 0, 1)
+    grey = 0.55 * _norm(frame_roi)
     t = np.clip(np.nan_to_num(res, nan=0.0), 0.0, 1.0) * (len(_INFERNO) - 1)
     i = np.minimum(t.astype(int), len(_INFERNO) - 2)
     w = (t - i)[..., None]

@@ -234,9 +234,11 @@ def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: 
     stiffness = f"{e_ratio:.1f}" if e_ratio >= 0.1 else f"{e_ratio:.2g}"  # not "0.0 times as stiff"
     stiffness += f" times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
     lo, hi = BOUNDS_KPA
-    if e_kPa is not None and (e_kPa >= 0.99 * hi or e_kPa <= 1.01 * lo):
-        stiffness += (f" (the fit's {'upper' if e_kPa >= 0.99 * hi else 'lower'} bound, {f'{e_kPa:,.0f}' if e_kPa >= 10 else f'{e_kPa:g}'} kPa: "
-                      f"read it as much {'stiffer' if e_ratio >= 1 else 'softer'})")
+    bound = "" if e_kPa is None else "upper" if e_kPa >= 0.99 * hi else "lower" if e_kPa <= 1.01 * lo else ""
+    if bound:
+        shown = f"{e_kPa:,.0f}" if e_kPa >= 10 else f"{e_kPa:g}"
+        much = "stiffer" if e_ratio >= 1 else "softer"
+        stiffness += f" (the fit's {bound} bound, {shown} kPa: read it as much {much})"
     moved = misfit_change(before_px, after_px)
     change = f"on the same mesh the displacement misfit {moved}"
     if moved.startswith("falls"):  # as the sentence reads it: lower to the digits shown

@@ -455,9 +455,7 @@ def report_maps(snapshot) -> list[dict]:
         lines = frame_outlines(snapshot, k, "target")
         c0, r0 = fc.roi_px[:2]
         drawn = [(p - [c0, r0], o.kind) for o in shapes for p in lines.get(o.region.name, [])]
-        kept = np.asarray(fc.valid, bool) & ~np.asarray(fc.outlier, bool)
-        diff = np.asarray(fc.difference_px, float)[kept]
-        rms = float(np.sqrt(np.mean((diff**2).sum(1)))) if len(diff) else math.nan
+        rms = fc.difference_rms_px
         shares = ", ".join(f"{n} {100 * v:.0f}%" for n, v in fc.region_share.items())
         caption = (f"{frame_label(fc)}: displacement difference {rms:.2f} px RMS; share of the misfit {shares}. "
                    f"{outlines_note(shapes, set(lines), lambda region, k=k: cmp.outside_text(k, region))}").strip()

@@ -50,6 +50,9 @@ MEASURED, MODEL, DIFFERENCE = "#0072b2", "#d55e00", "#c2185b"
 SUSPECT = "#9e9e9e"  # a difference at a block that disagrees with its neighbours
 OUTLINE = "#39e639"  # the regions' outlines: a green that neither the arrows nor the residual map use
 OUTLINE_TEXT = "#1f8f1f"  # the same green, dark enough to read on the window's light background
+# the outlines' pen by kind: dashes and dots (in pen widths) long enough to tell apart over speckle
+OUTLINE_STYLES = {"region": (Qt.SolidLine, None), "located": (Qt.DashLine, [4.0, 3.0]),
+                  "also fits": (Qt.DotLine, [1.0, 2.5])}
 VERDICT_BG = "#fff3c4"
 ACTIONS = {"identify": "Identifying", "diagnose": "Diagnosing", "add": "Adding", "revert": "Reverting",
            "refine": "Refining the inclusion's place", "restore": "Restoring the saved model check"}
@@ -802,7 +805,7 @@ class ModelCheckPanel(Panel):
         self.roi_outline.setData([c0, c1, c1, c0, c0], [r0, r0, r1, r1, r0])
         valid = np.asarray(fc.valid, bool)
         outlier = np.asarray(fc.outlier, bool)
-        kept = valid & ~outlier
+        kept = fc.kept
         every = np.asarray(fc.points_px, float)
         diff = np.asarray(fc.difference_px, float)
         scale = self.difference_scale()
@@ -839,8 +842,7 @@ class ModelCheckPanel(Panel):
         self.share_table.resizeColumnsToContents()
         outlined = self._draw_outlines(self.frame_box.currentIndex())
         n_valid, n_out = int(valid.sum()), int(outlier.sum())
-        d_kept = diff[kept]
-        rms = float(np.sqrt(np.mean((d_kept**2).sum(1)))) if len(d_kept) else math.nan
+        rms = fc.difference_rms_px
         out_text = (f"{n_out} of them disagree with their neighbours (grey differences: a wrong speckle match, "
                     f"or a sharp misfit; left out of the shares); " if n_out else "")
         self.frame_note.setText(
@@ -870,9 +872,6 @@ class ModelCheckPanel(Panel):
         shapes = outline_shapes(self._snapshot)
         if k is None or not shapes or not self.show_boxes["outlines"].isChecked():
             return ""
-        # dashes and dots (in pen widths) long enough to tell apart over speckle
-        styles = {"region": (Qt.SolidLine, None), "located": (Qt.DashLine, [4.0, 3.0]),
-                  "also fits": (Qt.DotLine, [1.0, 2.5])}
         drawn = set()
         for frame, plot in plots.items():
             lines = self.outlines_of(k, frame)
@@ -882,7 +881,7 @@ class ModelCheckPanel(Panel):
                 if not parts:
                     continue
                 xy = np.vstack([np.vstack([p, [np.nan, np.nan]]) for p in parts])
-                style, dashes = styles[o.kind]
+                style, dashes = OUTLINE_STYLES[o.kind]
                 pen = pg.mkPen(OUTLINE, width=1.8, style=style)
                 if dashes:
                     pen.setDashPattern(dashes)
