@@ -1066,16 +1066,23 @@ class _InclusionPrep:
     the sparse solves and BLAS release the GIL). On the demo this part took
     about 45 s of the diagnosis' 136 s, nearly all of it now hidden.
 
+    When the scan finds a rival place (a sphere elsewhere that explains nearly as
+    much, InclusionGuess.rival), the rival is built too, after the best, and both
+    are fitted (_try_inclusion keeps the one that lowers chi2 more). On the blind
+    paper-size seed 19007, a soft core inside the tumour A, the scan's best was a
+    stiffer sphere below A (381) and the truth's place its rival (376): the scan's
+    linearized patterns cannot rank places that close.
+
     Built beside the others, a diagnosis peaked at about four times the memory
     it held here (the demo 1.0 -> 4.1 GB; the boxed phantom's finer mesh 2.1 ->
-    8.3 GB). When the memory left cannot hold three times as much again
-    (:func:`app.core.memory.can_hold`), the model is built when its turn comes,
-    after the other candidates have released theirs."""
+    8.3 GB). When the memory left cannot hold three times as much again (four
+    with a rival, :func:`app.core.memory.can_hold`), the models are built when
+    their turn comes, after the other candidates have released theirs."""
 
     def __init__(self, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, say, cancel):
-        self.problem, self.error, self._thread, self.inclusion, self._work = None, None, None, None, None
-        self.reference = None  # the current model on the inclusion's mesh (same_mesh_model)
-        self.deferred = ""  # why the model is built in turn rather than in the background
+        self.error, self._thread, self._work, self.rival_error = None, None, None, None
+        self.places = []  # per place (the best, then the rival): (guess, inclusion, start kPa, model, reference)
+        self.deferred = ""  # why the models are built in turn rather than in the background
         say("scanning the image plane for an undescribed inclusion")
         try:
             self.guess = _scan(problem, base.parameters, tracked, noise, lik0, cancel)
@@ -1083,50 +1090,62 @@ class _InclusionPrep:
             self.guess, self.error = None, exc
         if self.guess is None:
             return
-        self.inclusion = self.guess.as_inclusion()
-        # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
-        self.start_kPa = base.parameters[_host(problem, self.guess.center_mm)] * (2.0 if self.guess.stiffer else 0.5)
-        near = (*problem.moduli(base.parameters), self.start_kPa)
-
+        guesses = [g for g in (self.guess, self.guess.rival_guess()) if g is not None]
         effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {"inclusion"})
+
+        def build(guess, progress):
+            # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
+            start_kPa = base.parameters[_host(problem, guess.center_mm)] * (2.0 if guess.stiffer else 0.5)
+            inclusion = guess.as_inclusion()
+            # one factorization alive at a time, freed once both models are built (both idle
+            # until the others are tried): the reference trains with the candidate's (two
+            # factorizations alive at once had made the building's peak on the demo 3.8 GB
+            # instead of 3.1 GB, with a 6 mm sphere)
+            cp = current_model(problem.exp, effects, mesh_settings=mesh_settings, inclusion=inclusion,
+                               cancel=cancel, nu=problem.nu, near_kPa=(*problem.moduli(base.parameters), start_kPa),
+                               progress=progress)
+            try:
+                ref = same_mesh_model(problem, cp, problem.moduli(base.parameters), cancel)
+                ref.release()  # drops the borrowed factorization
+            finally:
+                cp.release()
+            self.places.append((guess, inclusion, start_kPa, cp, ref))
 
         def work(progress=None):
             try:
                 if progress is not None:  # built in turn, short of memory: the current model's
                     problem.rm.release()  # factorization goes too (refactorized if it is needed again)
-                # one factorization alive at a time, freed once both models are built (both idle
-                # until the others are tried): the reference trains with the candidate's (two
-                # factorizations alive at once had made the building's peak on the demo 3.8 GB
-                # instead of 3.1 GB, with a 6 mm sphere)
-                self.problem = current_model(problem.exp, effects, mesh_settings=mesh_settings,
-                                             inclusion=self.inclusion, cancel=cancel, nu=problem.nu, near_kPa=near,
-                                             progress=progress)
-                try:
-                    self.reference = same_mesh_model(problem, self.problem, problem.moduli(base.parameters),
-                                                     cancel)
-                    self.reference.release()  # drops the borrowed factorization
-                finally:
-                    self.problem.release()
-            except BaseException as exc:  # handed to the thread that waits for the model
+                for k, guess in enumerate(guesses):
+                    if k and progress is not None:
+                        progress(f"building the model with the inclusion at the rival place "
+                                 f"{np.round(guess.center_mm, 1).tolist()} mm")
+                    build(guess, progress)
+            except BaseException as exc:  # handed to the thread that waits for the models
                 self.error = exc
 
         located = (f"inclusion located at {np.round(self.guess.center_mm, 1).tolist()} mm, "
                    f"radius {self.guess.radius_mm:.1f} mm")
+        if len(guesses) > 1:
+            located += (f" (a rival place, {np.round(guesses[1].center_mm, 1).tolist()} mm, explains nearly as "
+                        "much: both are built and fitted)")
         held = memory.resident_bytes()
-        if held is None or memory.can_hold(BESIDE_FACTOR * held):
-            say(f"{located}; building its model in the background")
+        if held is None or memory.can_hold((BESIDE_FACTOR + len(guesses) - 1) * held):
+            say(f"{located}; building {'their models' if len(guesses) > 1 else 'its model'} in the background")
             self._thread = threading.Thread(target=work, name="inclusion-mesh", daemon=True)
             self._thread.start()
         else:
+            wanted = (BESIDE_FACTOR + len(guesses) - 1) * held + memory.RESERVE_BYTES
             self.deferred = (f"memory is short ({memory.describe(memory.available_bytes())} left, "
-                             f"{memory.describe(BESIDE_FACTOR * held + memory.RESERVE_BYTES)} wanted): its model "
-                             "is built after the other candidates")
+                             f"{memory.describe(wanted)} wanted): "
+                             f"{'their models are' if len(guesses) > 1 else 'its model is'} built after the "
+                             "other candidates")
             say(f"{located}; {self.deferred}")
             self._work, self._say = work, say  # run by result(), in its thread
 
-    def result(self):
-        """(guess, inclusion dict, the model with the inclusion, the current model on
-        its mesh); waits for the models."""
+    def result(self) -> list:
+        """Per place (the scan's best, then its rival if any): (guess, inclusion
+        dict, the inclusion's start modulus, the model with the inclusion, the
+        current model on its mesh); waits for the models."""
         if self.error is not None and self._thread is None:
             raise self.error
         if self.guess is None:
@@ -1137,8 +1156,11 @@ class _InclusionPrep:
             work, self._work = self._work, None
             work(self._say)
         if self.error is not None:
-            raise self.error
-        return self.guess, self.inclusion, self.problem, self.reference
+            if not self.places:
+                raise self.error
+            # the rival's model failed: the best place alone is the candidate
+            self.rival_error, self.error = self.error, None
+        return list(self.places)
 
 
 def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None = None, start: dict | None = None,
@@ -1352,25 +1374,28 @@ def yields(c: Candidate, other: Candidate, joint: Candidate, lnN: float, nu_mode
 
 def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings,
                 max_evaluations, say, cancel, prep: _InclusionPrep | None = None) -> Candidate:
+    if eff == "inclusion":
+        return _try_inclusion(problem, base, tracked, noise, lik0, mesh_settings, max_evaluations, say, cancel, prep)
     effects = tuple(e for e in EFFECT_IDS if e in set(problem.effects) | {eff})
     start = dict(base.parameters)
-    inclusion = problem.inclusion
-    if eff == "inclusion":
-        if prep is None:
-            prep = _InclusionPrep(problem, base, tracked, noise, lik0, mesh_settings, say, cancel)
-        say("waiting for the model with the inclusion")
-        guess, inclusion, cp, same_mesh = prep.result()
-        start[f"E_{guess.name}_kPa"] = prep.start_kPa
-    else:
-        cp = _model_like(problem, effects, problem.moduli(start), cancel, base=problem, progress=say)
+    cp = _model_like(problem, effects, problem.moduli(start), cancel, base=problem, progress=say)
+    return _fit_candidate(eff, cp, start, problem, base, tracked, noise, lik0, max_evaluations, say, cancel)
+
+
+def _fit_candidate(eff, cp: EffectProblem, start: dict, problem: EffectProblem, base: Candidate, tracked, noise,
+                   lik0, max_evaluations, say, cancel, same_mesh: EffectProblem | None = None) -> Candidate:
+    """The candidate ``eff``: its model ``cp`` fitted by maximum likelihood from
+    ``start``; for an inclusion also the current model refitted on its mesh
+    (``same_mesh``), which it is scored against."""
     if "hyperelastic" in problem.effects and cp._hyper is None:
         cp.share_hyperelastic_solver(problem)  # warm from the current model's equilibria if on its FE model
         cp.refresh_hyperelastic(start, cancel=cancel)
     lik = Likelihood(cp, tracked, noise)
     res = _fit_polished(cp, lik, _starts(eff, cp, cp.complete(start)), cancel, max_evaluations, say, eff)
     mis = _misfit(lik, res.parameters)
-    cand = Candidate(eff, effects, res.parameters, res.cost, mis, INFO[eff].n_parameters, 0.0, "", inclusion, 0.0, cp)
-    if eff == "inclusion":  # scored against the current model refitted on the same mesh
+    cand = Candidate(eff, cp.effects, res.parameters, res.cost, mis, INFO[eff].n_parameters, 0.0, "",
+                     cp.inclusion, 0.0, cp)
+    if same_mesh is not None:  # scored against the current model refitted on the same mesh
         say("refitting the current model on the inclusion's mesh")
         if "hyperelastic" in same_mesh.effects:
             same_mesh.refresh_hyperelastic(base.parameters, cancel=cancel)
@@ -1382,6 +1407,43 @@ def _try_effect(exp, eff, problem: EffectProblem, base: Candidate, tracked, nois
                                      problem.model_force_N(base.parameters), cp.model_force_N(res.parameters))
     cand.evidence = _evidence(eff, problem, base, cand, tracked, lik0, lik)
     return cand
+
+
+def _try_inclusion(problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, max_evaluations,
+                   say, cancel, prep: _InclusionPrep | None) -> Candidate:
+    """The inclusion candidate: the located sphere meshed and fitted, and the
+    scan's rival place too when there is one (see _InclusionPrep); the place that
+    lowers chi2 more (from its own same-mesh reference, scoring_reference) is the
+    candidate, and its inclusion says what the other did (with_fitted_rival)."""
+    from app.core.effects.inclusion import with_fitted_rival
+
+    if prep is None:
+        prep = _InclusionPrep(problem, base, tracked, noise, lik0, mesh_settings, say, cancel)
+    say("waiting for the model with the inclusion")
+    places = prep.result()
+    if prep.rival_error is not None:
+        say(f"the model with the inclusion at the rival place failed ({prep.rival_error}); the scan's best "
+            "place alone is tried")
+    fitted = []
+    for k, (guess, inclusion, start_kPa, cp, same_mesh) in enumerate(places):
+        if k:
+            say(f"fitting the inclusion at the rival place {np.round(guess.center_mm, 1).tolist()} mm")
+        start = {**base.parameters, f"E_{guess.name}_kPa": start_kPa}
+        cand = _fit_candidate("inclusion", cp, start, problem, base, tracked, noise, lik0, max_evaluations, say,
+                              cancel, same_mesh)
+        fitted.append((scoring_reference(base, cand)["chi2"] - cand.misfit["chi2"], k, cand))
+    if len(fitted) == 1:
+        return fitted[0][2]
+    fitted.sort(key=lambda t: -t[0])
+    (gained, k, best), (rival_gained, j, other) = fitted
+    say(f"the inclusion lowers chi2 by {gained:,.0f} at {np.round(best.inclusion['center_mm'], 1).tolist()} mm "
+        f"and by {rival_gained:,.0f} at {np.round(other.inclusion['center_mm'], 1).tolist()} mm"
+        f"{' (the rival place)' if k else ''}")
+    other.problem.release()
+    rival = dict(other.inclusion, stiffer=places[j][0].stiffer)
+    best.inclusion = with_fitted_rival(best.inclusion, rival, gained, rival_gained)
+    best.evidence = _evidence("inclusion", problem, base, best, tracked, lik0, None)
+    return best
 
 
 # how many times a candidate's best fit that stopped at the evaluation cap goes on

@@ -730,6 +730,38 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     assert tb.joint.parameters[f"E_{c.inclusion['name']}_kPa"] > tb.joint.parameters["E_B_kPa"], tb.joint.parameters
 
 
+def test_a_rival_place_is_meshed_and_fitted_too_and_the_better_fit_kept(tmp_path_factory, monkeypatch):
+    """When the scan reports a rival place, both spheres are meshed and fitted, and
+    the candidate is the one that lowers chi2 more (each from the current model on
+    its own mesh); its inclusion says what the other did. Every scan here gets a
+    rival (RIVAL_SHARE 0: the best sphere that does not overlap the best). On seed
+    13 the best is the hidden sphere's place (within 3 mm), and it fits better
+    than the rival. The rival's mesh is made afresh (fTetWild is not deterministic),
+    so only what holds on any mesh of it is asserted."""
+    from app.core.effects import inclusion as inclusion_effect
+
+    monkeypatch.setattr(inclusion_effect, "RIVAL_SHARE", 0.0)
+    exp = _make(tmp_path_factory, "inclusion")
+    c_true = np.array(read_truth(exp.path)["hidden_regions"][0]["center_mm"], float)
+    said = []
+    d = diagnose(exp, candidates=("inclusion",), mesh_settings=ID_MESH, progress=said.append)
+    assert any(s.startswith("inclusion located at") and "both are built and fitted" in s for s in said), said
+    assert any(s.startswith("fitting the inclusion at the rival place") for s in said), said
+    c = d.candidate("inclusion")
+    inc = c.inclusion
+    assert np.linalg.norm(np.array(inc["center_mm"]) - c_true) < 3.0, inc
+    assert ("also_fits" in inc) != ("rival_fitted" in inc), inc
+    other = inc.get("also_fits") or inc["rival_fitted"]
+    assert other["fitted"] and other["explained"] <= other["explained_here"], inc
+    assert math.dist(other["center_mm"], inc["center_mm"]) > other["radius_mm"] + inc["radius_mm"], inc
+    # the kept gain is the candidate's: its score plus the four parameters' cost
+    assert abs(c.score + c.n_parameters * math.log(d.noise.n) - other["explained_here"]) < 0.1, (c.score, inc)
+    # the model kept is the kept place's
+    assert c.problem is not None and c.problem.inclusion["center_mm"] == inc["center_mm"]
+    assert "meshed and fitted too" in c.evidence, c.evidence
+    assert d.verdict == "inclusion", d.lines()
+
+
 def test_refining_an_inclusion_moves_it_to_where_the_data_put_it(tmp_path_factory):
     """The hidden 4 mm sphere of seed 13 (60 kPa at (26, 20, 14) mm in 15 kPa
     tissue beside region A), given 3 mm off to the side as the model's inclusion:
@@ -990,3 +1022,40 @@ def test_a_sphere_elsewhere_that_fits_nearly_as_well_is_reported():
     assert said.endswith("falls from 0.35 to 0.15 px; but " + text)
     clear = InclusionGuess("I", tuple(left), 5.4, True, 300.0)
     assert "also_fits" not in clear.as_inclusion() and also_fits_text(clear.as_inclusion(), 96.0) == ""
+
+
+def test_the_rival_place_fitted_too_is_kept_as_what_it_did():
+    """Both places of an ambiguous scan are meshed and fitted (diagnose._try_inclusion);
+    the one that lowers chi2 more is the candidate, and its inclusion says what the
+    other did: still ``also_fits`` when it explains RIVAL_SHARE as much, else
+    ``rival_fitted``, a place tried that fits worse. The rival of a guess is a guess
+    whose rival is the first."""
+    from app.core.effects.inclusion import RIVAL_SHARE, InclusionGuess, also_fits_text, with_fitted_rival
+
+    best, other = (43.1, 45.0, 74.4), (46.7, 45.0, 56.4)
+    g = InclusionGuess("I", best, 6.4, False, 380.6, (other, 6.4, True, 375.7))
+    r = g.rival_guess()
+    assert r.center_mm == other and r.stiffer and r.explained == 375.7
+    assert r.rival == (best, 6.4, False, 380.6) and r.rival_guess() == g
+    assert InclusionGuess("I", best, 6.4, False, 380.6).rival_guess() is None
+
+    placed = {"name": "I", "center_mm": list(best), "radius_mm": 6.4,
+              "also_fits": r.as_inclusion()["also_fits"]}  # the scan's words, replaced
+    rival = {"name": "I", "center_mm": list(other), "radius_mm": 6.4, "stiffer": True}
+    resolved = with_fitted_rival(placed, rival, 520.0, 300.0)
+    assert "also_fits" not in resolved and resolved["rival_fitted"] == {
+        "center_mm": list(other), "radius_mm": 6.4, "stiffer": True, "explained": 300.0, "explained_here": 520.0,
+        "fitted": True}
+    assert {k: resolved[k] for k in ("name", "center_mm", "radius_mm")} == {k: placed[k] for k in
+                                                                          ("name", "center_mm", "radius_mm")}
+    assert also_fits_text(resolved, 96.0) == (
+        "a stiffer region about 13 mm across at 40 mm depth, 18 mm from it, which the scan ranked about as high, "
+        "was meshed and fitted too and explains less (chi2 falls by 300 there against 520 here)")
+    tied = with_fitted_rival(placed, rival, 520.0, RIVAL_SHARE * 520.0)
+    assert "rival_fitted" not in tied and tied["also_fits"]["fitted"]
+    assert also_fits_text(tied, 96.0) == (
+        "a stiffer region about 13 mm across at 40 mm depth, 18 mm from it, meshed and fitted too, explains the "
+        "misfit nearly as well (chi2 falls by 468 there against 520 here): these measurements do not tell the two "
+        "places apart")
+    # neither explains anything: no ambiguity to report
+    assert "rival_fitted" in with_fitted_rival(placed, rival, -5.0, -8.0)

@@ -54,6 +54,14 @@ class InclusionGuess:
     # stiffer, explained; None when the place is clear
     rival: tuple | None = None
 
+    def rival_guess(self) -> "InclusionGuess | None":
+        """The rival place as a guess of its own (whose rival is this one), or None."""
+        if self.rival is None:
+            return None
+        c, r, stiffer, gain = self.rival
+        return InclusionGuess(self.name, tuple(float(v) for v in c), float(r), bool(stiffer), float(gain),
+                              (self.center_mm, self.radius_mm, self.stiffer, self.explained))
+
     def region(self) -> Region:
         return Region(self.name, "sphere", center_mm=tuple(self.center_mm), radius_mm=float(self.radius_mm))
 
@@ -83,18 +91,41 @@ class InclusionGuess:
 RIVAL_SHARE = 0.9
 
 
+def with_fitted_rival(inclusion: dict, rival: dict, gained: float, rival_gained: float) -> dict:
+    """The inclusion ``inclusion`` (name, center_mm, radius_mm) after it and the
+    scan's rival place (``rival``: the same keys and ``stiffer``) were both meshed
+    and fitted, and this one lowered chi2 more (by ``gained``, against the rival's
+    ``rival_gained``). The rival stays ``also_fits`` (``fitted``: True) when it
+    still explains at least RIVAL_SHARE as much; else it is kept as
+    ``rival_fitted``, a place tried and found to fit worse."""
+    out = {k: v for k, v in inclusion.items() if k not in ("also_fits", "rival_fitted")}
+    other = {"center_mm": [round(float(v), 3) for v in rival["center_mm"]],
+             "radius_mm": round(float(rival["radius_mm"]), 3), "stiffer": bool(rival["stiffer"]),
+             "explained": round(float(rival_gained), 1), "explained_here": round(float(gained), 1), "fitted": True}
+    ambiguous = gained > 0 and rival_gained >= RIVAL_SHARE * gained
+    out["also_fits" if ambiguous else "rival_fitted"] = other
+    return out
+
+
 def also_fits_text(inclusion: dict, top_mm: float) -> str:
     """What else fits, for an inclusion whose place is ambiguous (``also_fits`` of
-    :meth:`InclusionGuess.as_inclusion`), or "". ``top_mm``: the height of the
-    specimen's top face (depths are measured from it)."""
-    also = inclusion.get("also_fits")
+    :meth:`InclusionGuess.as_inclusion`, or of :func:`with_fitted_rival`), or what
+    was tried instead and fits worse (``rival_fitted``), or "". ``top_mm``: the
+    height of the specimen's top face (depths are measured from it)."""
+    also = inclusion.get("also_fits") or inclusion.get("rival_fitted")
     if not also:
         return ""
     apart = math.dist(also["center_mm"], inclusion["center_mm"])
-    return (f"a {'stiffer' if also['stiffer'] else 'softer'} region about {2 * also['radius_mm']:.0f} mm "
-            f"across at {top_mm - also['center_mm'][2]:.0f} mm depth, {apart:.0f} mm from it, explains the misfit "
-            f"nearly as well ({also['explained']:.0f} against {also['explained_here']:.0f} on the scan): these "
-            "measurements do not tell the two places apart")
+    where = (f"a {'stiffer' if also['stiffer'] else 'softer'} region about {2 * also['radius_mm']:.0f} mm "
+             f"across at {top_mm - also['center_mm'][2]:.0f} mm depth, {apart:.0f} mm from it")
+    if not also.get("fitted"):
+        return (f"{where}, explains the misfit nearly as well ({also['explained']:.0f} against "
+                f"{also['explained_here']:.0f} on the scan): these measurements do not tell the two places apart")
+    gains = f"chi2 falls by {also['explained']:,.0f} there against {also['explained_here']:,.0f} here"
+    if "also_fits" in inclusion:
+        return (f"{where}, meshed and fitted too, explains the misfit nearly as well ({gains}): these "
+                "measurements do not tell the two places apart")
+    return f"{where}, which the scan ranked about as high, was meshed and fitted too and explains less ({gains})"
 
 
 def place_text(inclusion: dict) -> str:
