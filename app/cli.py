@@ -261,6 +261,8 @@ def cmd_identify(args) -> int:
                   f"{locate_seconds:.1f} s before the fit): centre {place_text(located)}")
             if located.get("also_fits"):
                 print(f"  the place is uncertain: {also_fits_text(located, exp.specimen.size_mm[2])}")
+            elif located.get("rival_fitted"):
+                print(f"  another place was tried: {also_fits_text(located, exp.specimen.size_mm[2])}")
             if args.refine_inclusion:
                 print(f"  {'refined' if refinement['refined'] else 'not refined'} in {refinement['seconds']:.1f} s"
                       f"{': centre ' + place_text(inclusion) if refinement['refined'] else ''}; "

@@ -853,13 +853,20 @@ def locate_inclusion(exp, effects=(), *, mesh_settings=None, max_evaluations: in
         tracked, noise, lik, fit_, _ = _current_fit(problem, None, None, cancel, max_evaluations, say)
         say("scanning the image plane for an undescribed inclusion")
         guess = _scan(problem, fit_.parameters, tracked, noise, lik, cancel)
+        if guess is not None and guess.rival is not None:  # both places meshed and fitted, as the diagnosis does
+            params = fit_.parameters
+            base = Candidate("", problem.effects, params, fit_.cost, _misfit(lik, params), inclusion=problem.inclusion)
+            prep = _InclusionPrep(problem, base, tracked, noise, lik, mesh_settings, say, cancel, guess)
+            best = _try_inclusion(problem, base, tracked, noise, lik, mesh_settings, max_evaluations, say, cancel,
+                                  prep)
+            best.problem.release()
+            return best.inclusion
     finally:
         problem.release()
     if guess is None:
         raise ElastoidError("the inclusion effect: the misfit of the model without it has no localized part to "
                             "place an inclusion at")
-    say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm"
-        f"{' (its place is uncertain)' if guess.rival else ''}")
+    say(f"inclusion located at {np.round(guess.center_mm, 1).tolist()} mm, radius {guess.radius_mm:.1f} mm")
     return guess.as_inclusion()
 
 
@@ -1079,15 +1086,18 @@ class _InclusionPrep:
     with a rival, :func:`app.core.memory.can_hold`), the models are built when
     their turn comes, after the other candidates have released theirs."""
 
-    def __init__(self, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, say, cancel):
+    def __init__(self, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, say, cancel,
+                 guess=None):
         self.error, self._thread, self._work, self.rival_error = None, None, None, None
         self.places = []  # per place (the best, then the rival): (guess, inclusion, start kPa, model, reference)
         self.deferred = ""  # why the models are built in turn rather than in the background
-        say("scanning the image plane for an undescribed inclusion")
-        try:
-            self.guess = _scan(problem, base.parameters, tracked, noise, lik0, cancel)
-        except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate fails, not the diagnosis
-            self.guess, self.error = None, exc
+        self.guess = guess  # the scan's, when it was done already (locate_inclusion)
+        if guess is None:
+            say("scanning the image plane for an undescribed inclusion")
+            try:
+                self.guess = _scan(problem, base.parameters, tracked, noise, lik0, cancel)
+            except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate fails, not the diagnosis
+                self.guess, self.error = None, exc
         if self.guess is None:
             return
         guesses = [g for g in (self.guess, self.guess.rival_guess()) if g is not None]

@@ -762,6 +762,26 @@ def test_a_rival_place_is_meshed_and_fitted_too_and_the_better_fit_kept(tmp_path
     assert d.verdict == "inclusion", d.lines()
 
 
+def test_locating_an_inclusion_for_identify_fits_a_rival_place_too(tmp_path_factory, monkeypatch):
+    """`elastoid identify --effects inclusion` places the sphere by the same steps
+    as the diagnosis' candidate, the rival place included: both meshed and fitted,
+    the better kept. Every scan gets a rival here (RIVAL_SHARE 0); on seed 13 the
+    kept place is the hidden sphere's (within 3 mm)."""
+    from app.core.diagnose import locate_inclusion
+    from app.core.effects import inclusion as inclusion_effect
+
+    monkeypatch.setattr(inclusion_effect, "RIVAL_SHARE", 0.0)
+    exp = _make(tmp_path_factory, "inclusion")
+    c_true = np.array(read_truth(exp.path)["hidden_regions"][0]["center_mm"], float)
+    said = []
+    inc = locate_inclusion(exp, ("inclusion",), mesh_settings=ID_MESH, progress=said.append)
+    assert any(s.startswith("fitting the inclusion at the rival place") for s in said), said
+    assert np.linalg.norm(np.array(inc["center_mm"]) - c_true) < 3.0, inc
+    other = inc.get("also_fits") or inc["rival_fitted"]
+    assert other["fitted"] and other["explained"] <= other["explained_here"], inc
+    assert set(inc) - {"also_fits", "rival_fitted"} == {"name", "center_mm", "radius_mm"}, inc
+
+
 def test_refining_an_inclusion_moves_it_to_where_the_data_put_it(tmp_path_factory):
     """The hidden 4 mm sphere of seed 13 (60 kPa at (26, 20, 14) mm in 15 kPa
     tissue beside region A), given 3 mm off to the side as the model's inclusion:
