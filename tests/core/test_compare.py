@@ -228,3 +228,21 @@ def test_region_outlines_lie_on_the_region_and_follow_the_models_displacement(tm
     # measured 0.21 px at most, for a median shift of 13.5 px (the warp's coarse field against the
     # point operator)
     assert _segment_distance(moved, target[0]).max() < 0.3, _segment_distance(moved, target[0]).max()
+
+    # the residual map's region shares label each pixel by its material point, so the pixels
+    # labelled A are those inside A's outline on that frame (checked above against the point
+    # operator), not inside where A lay before the probe pressed
+    from skimage.measure import points_in_poly
+
+    from app.core.compare import residual_map_labels
+
+    lab = residual_map_labels(problem, fc.source_of_target_px, fc.source_displacement_mm)
+    I, J = np.mgrid[0 : lab.shape[0], 0 : lab.shape[1]]
+    px = np.column_stack([c0 + 2.0 * J.ravel(), r0 + 2.0 * I.ravel()])  # every second pixel, (col, row)
+    clear = _segment_distance(px, target[0]) > 1.0  # off the outline by more than a pixel
+    in_a = points_in_poly(px, target[0])
+    assert np.array_equal((lab.ravel() == 1)[clear], in_a[clear])
+    # where A lay before the probe pressed: hundreds of pixels at the outline's move differ
+    was_a = points_in_poly(px, ring)
+    assert (in_a & ~was_a & clear).sum() > 100, (in_a & ~was_a & clear).sum()
+    assert set(cmp.image_region_share) == {"B", "A"} and sum(cmp.image_region_share.values()) == pytest.approx(1.0)
