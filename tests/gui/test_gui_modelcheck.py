@@ -321,6 +321,33 @@ def test_identify_with_an_inclusion_locates_it(window, visco_experiment, qtbot, 
     assert names == ["A", "I"] and "Outlines: A; I." in panel.frame_note.text(), panel.frame_note.text()
 
 
+def test_outline_labels_do_not_sit_on_one_another():
+    """An inclusion found inside a region (blind seed 19007's soft core inside A) has
+    its top near the region's: its name goes below it, or beside it, instead of
+    over the region's name; a clear top keeps it above, and an outline the ROI's
+    top edge cuts has its name below that top."""
+    from app.gui.models.modelcheck import LABEL_CLEAR_PX, label_place
+
+    t = np.linspace(0, 2 * np.pi, 181)
+
+    def circle(cx, cy, r):
+        return [np.column_stack([cx + r * np.cos(t), cy + r * np.sin(t)])]
+
+    a = circle(100.0, 100.0, 60.0)  # top at (100, 40)
+    at, anchor = label_place(a, [], roi_top=0.0)
+    assert np.allclose(at, (100.0, 40.0)) and anchor == (0.5, 1.0)  # above its top
+    inner = circle(100.0, 65.0, 24.0)  # inside A, its top at (100, 41): A's label is there
+    at2, anchor2 = label_place(inner, [at], roi_top=0.0)
+    assert np.allclose(at2, (100.0, 89.0)) and anchor2 == (0.5, 0.0)  # below its bottom
+    crowded = [at, at2]
+    at3, anchor3 = label_place(circle(100.0, 66.0, 23.0), crowded, roi_top=0.0)  # top and bottom taken
+    assert np.allclose(at3, (77.0, 66.0)) and anchor3 == (1.0, 0.5)  # left of it
+    assert all(abs(at3[0] - q[0]) > LABEL_CLEAR_PX[0] or abs(at3[1] - q[1]) > LABEL_CLEAR_PX[1] for q in crowded)
+    far = circle(300.0, 100.0, 30.0)
+    assert label_place(far, crowded, roi_top=0.0)[1] == (0.5, 1.0)  # nothing near its top
+    assert label_place(a, [], roi_top=45.0)[1] == (0.5, 0.0)  # the ROI's top cuts it: below the top
+
+
 def test_the_maps_outline_the_inclusion_the_diagnosis_located(window, visco_experiment, qtbot):
     """After a diagnosis that found an inclusion, the Compare maps outline the
     located sphere (dashed) and the sphere elsewhere that fits nearly as well

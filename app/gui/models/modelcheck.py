@@ -372,6 +372,31 @@ def frame_outlines(snapshot, k: int, frame: str) -> dict:
     return lines
 
 
+# how far apart (px of the map, x and y) two outline labels' anchors must be for the
+# second to stay where the first choice puts it: about a short label's box
+LABEL_CLEAR_PX = (24.0, 14.0)
+
+
+def label_place(parts: list, taken: list, roi_top: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """Where to name an outline (``parts``: its polylines, (n, 2) of (col, row)) on a
+    map: the point and the label's anchor. Above its top (the image's rows grow
+    downwards), or below the top when the ROI's top edge (``roi_top``) cuts it;
+    when a label already placed (``taken``: their points) is that close, below its
+    bottom, left of it or right of it, the first that is clear. An inclusion found
+    inside a region has its top near the region's, and the two names sat on one
+    another (blind seed 19007's soft core inside A, 2026-11-29)."""
+    pts = np.vstack(parts)
+    top, bottom = pts[np.argmin(pts[:, 1])], pts[np.argmax(pts[:, 1])]
+    left, right = pts[np.argmin(pts[:, 0])], pts[np.argmax(pts[:, 0])]
+    options = [(top, (0.5, 0.0 if top[1] < roi_top + 12 else 1.0)), (bottom, (0.5, 0.0)), (left, (1.0, 0.5)),
+               (right, (0.0, 0.5))]
+    dx, dy = LABEL_CLEAR_PX
+    for point, anchor in options:
+        if all(abs(point[0] - q[0]) > dx or abs(point[1] - q[1]) > dy for q in taken):
+            return point, anchor
+    return options[0]
+
+
 def outlines_note(shapes: list[Outline], drawn, where=None) -> str:
     """The maps' legend for the outlines, and which of them have none in this
     frame's ROI (``drawn``: the names outlined), each with where it lies

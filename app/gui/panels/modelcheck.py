@@ -35,8 +35,8 @@ from app.core.effects.compressibility import NU_NEGLIGIBLE
 from app.core.effects.inclusion import NEGLIGIBLE_RATIO as INCLUSION_RATIO
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
-                                 diagnosis_rows, frame_label, frame_outlines, history_rows, outline_shapes,
-                                 outlines_note, parameters_text, verdict_parts)
+                                 diagnosis_rows, frame_label, frame_outlines, history_rows, label_place,
+                                 outline_shapes, outlines_note, parameters_text, verdict_parts)
 from ..models.session import SessionModel
 from ..style import FORCE_KEY, force_pens, mono_font, region_color, style_plot
 from ..workers import Task
@@ -876,6 +876,7 @@ class ModelCheckPanel(Panel):
         for frame, plot in plots.items():
             lines = self.outlines_of(k, frame)
             drawn |= set(lines)
+            taken = []  # the labels' points on this map
             for o in shapes:
                 parts = lines.get(o.region.name, [])
                 if not parts:
@@ -886,14 +887,13 @@ class ModelCheckPanel(Panel):
                 if dashes:
                     pen.setDashPattern(dashes)
                 item = pg.PlotDataItem(xy[:, 0], xy[:, 1], connect="finite", pen=pen)
-                # the name above the outline's top (the image's rows grow downwards), or below
-                # it when the ROI's top edge cuts the outline
-                top = min((p[np.argmin(p[:, 1])] for p in parts), key=lambda q: q[1])
-                below = top[1] < self.comparison.frames[k].roi_px[1] + 12
-                label = pg.TextItem(html=f"<b>{html.escape(o.label)}</b>", anchor=(0.5, 0.0 if below else 1.0),
+                # the name above the outline's top, or elsewhere on it when that is taken (label_place)
+                at, anchor = label_place(parts, taken, self.comparison.frames[k].roi_px[1])
+                taken.append(at)
+                label = pg.TextItem(html=f"<b>{html.escape(o.label)}</b>", anchor=anchor,
                                     fill=pg.mkBrush(0, 0, 0, 120))  # readable over bright speckle
                 label.setColor(OUTLINE)
-                label.setPos(float(top[0]), float(top[1]))
+                label.setPos(float(at[0]), float(at[1]))
                 for it in (item, label):
                     it.setZValue(5)
                     plot.addItem(it)
