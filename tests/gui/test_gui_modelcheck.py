@@ -626,6 +626,8 @@ def test_the_diagnosis_says_when_memory_was_short(window, qtbot):
         panel._show(panel.model.apply((None, None, Snapshot(h, None, d, 0, "diagnose", "diagnosis: verdict none"))))
         text = panel.diagnosis_current.text()
         assert "Diagnosed version 0 (baseline) in 98 s" in text
+        # its misfits are the maximum-likelihood refit's, not the identified version's the Compare tab shows
+        assert "Refitted by maximum likelihood for the scores" in text and "as identified" in text
         if memory_note:
             assert "Memory was short, so the model with the inclusion was built after the other candidates" in text
             assert "at 3 of the travels" in text and "ELASTOID_MEMORY_GB" in text

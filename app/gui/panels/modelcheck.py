@@ -913,9 +913,11 @@ class ModelCheckPanel(Panel):
         self.verdict_label.setText(f"<b>{html.escape(head)}</b>{html.escape(rest)}{tie}")
         b = d.baseline
         self.diagnosis_current.setText(
-            f"Diagnosed version {snap.diagnosed_version} ({', '.join(b.effects) or 'baseline'}) in {d.seconds:.0f} s: "
-            f"force misfit {b.misfit.get('force_rms_N', math.nan):.4f} N, displacement misfit "
-            f"{b.misfit.get('displacement_rms_px', math.nan):.3f} px."
+            f"Diagnosed version {snap.diagnosed_version} ({', '.join(b.effects) or 'baseline'}) in {d.seconds:.0f} s. "
+            f"Refitted by maximum likelihood for the scores, it leaves a force misfit of "
+            f"{b.misfit.get('force_rms_N', math.nan):.4f} N and a displacement misfit of "
+            f"{b.misfit.get('displacement_rms_px', math.nan):.3f} px (the Compare tab shows the version as "
+            "identified)."
             + ("" if self.model.diagnosis_is_current() else
                "  <span style='color:#b26a00'>The current version is another one: diagnose again to add to it."
                "</span>")
