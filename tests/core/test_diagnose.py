@@ -730,22 +730,30 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     assert tb.joint.parameters[f"E_{c.inclusion['name']}_kPa"] > tb.joint.parameters["E_B_kPa"], tb.joint.parameters
 
 
-def test_a_rival_place_is_meshed_and_fitted_too_and_the_better_fit_kept(tmp_path_factory, monkeypatch):
+@pytest.mark.parametrize("short_of_memory", [False, True])
+def test_a_rival_place_is_meshed_and_fitted_too_and_the_better_fit_kept(tmp_path_factory, monkeypatch,
+                                                                         short_of_memory):
     """When the scan reports a rival place, both spheres are meshed and fitted, and
     the candidate is the one that lowers chi2 more (each from the current model on
     its own mesh); its inclusion says what the other did. Every scan here gets a
     rival (RIVAL_SHARE 0: the best sphere that does not overlap the best). On seed
     13 the best is the hidden sphere's place (within 3 mm), and it fits better
     than the rival. The rival's mesh is made afresh (fTetWild is not deterministic),
-    so only what holds on any mesh of it is asserted."""
+    so only what holds on any mesh of it is asserted. Short of memory, both models
+    are built in turn (after the other candidates), and it says so."""
     from app.core.effects import inclusion as inclusion_effect
 
     monkeypatch.setattr(inclusion_effect, "RIVAL_SHARE", 0.0)
     exp = _make(tmp_path_factory, "inclusion")
     c_true = np.array(read_truth(exp.path)["hidden_regions"][0]["center_mm"], float)
+    if short_of_memory:
+        monkeypatch.setenv("ELASTOID_MEMORY_GB", "0.001")
     said = []
     d = diagnose(exp, candidates=("inclusion",), mesh_settings=ID_MESH, progress=said.append)
-    assert any(s.startswith("inclusion located at") and "both are built and fitted" in s for s in said), said
+    monkeypatch.delenv("ELASTOID_MEMORY_GB", raising=False)
+    located = [s for s in said if s.startswith("inclusion located at")]
+    assert len(located) == 1 and "both are built and fitted" in located[0], said
+    assert ("their models are built after the other candidates" in located[0]) == short_of_memory, located
     assert any(s.startswith("fitting the inclusion at the rival place") for s in said), said
     c = d.candidate("inclusion")
     inc = c.inclusion
