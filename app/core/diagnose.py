@@ -1089,7 +1089,7 @@ class _InclusionPrep:
     def __init__(self, problem: EffectProblem, base: Candidate, tracked, noise, lik0, mesh_settings, say, cancel,
                  guess=None):
         self.error, self._thread, self._work, self.rival_error = None, None, None, None
-        self.places = []  # per place (the best, then the rival): (guess, inclusion, start kPa, model, reference)
+        self.places = []  # per place (the best, then the rival): (guess, start kPa, model, reference)
         self.deferred = ""  # why the models are built in turn rather than in the background
         self.guess = guess  # the scan's, when it was done already (locate_inclusion)
         if guess is None:
@@ -1106,12 +1106,11 @@ class _InclusionPrep:
         def build(guess, progress):
             # the inclusion starts at the modulus of the region around its centre, pushed the way the misfit says
             start_kPa = base.parameters[_host(problem, guess.center_mm)] * (2.0 if guess.stiffer else 0.5)
-            inclusion = guess.as_inclusion()
             # one factorization alive at a time, freed once both models are built (both idle
             # until the others are tried): the reference trains with the candidate's (two
             # factorizations alive at once had made the building's peak on the demo 3.8 GB
             # instead of 3.1 GB, with a 6 mm sphere)
-            cp = current_model(problem.exp, effects, mesh_settings=mesh_settings, inclusion=inclusion,
+            cp = current_model(problem.exp, effects, mesh_settings=mesh_settings, inclusion=guess.as_inclusion(),
                                cancel=cancel, nu=problem.nu, near_kPa=(*problem.moduli(base.parameters), start_kPa),
                                progress=progress)
             try:
@@ -1119,7 +1118,7 @@ class _InclusionPrep:
                 ref.release()  # drops the borrowed factorization
             finally:
                 cp.release()
-            self.places.append((guess, inclusion, start_kPa, cp, ref))
+            self.places.append((guess, start_kPa, cp, ref))
 
         def work(progress=None):
             try:
@@ -1153,9 +1152,9 @@ class _InclusionPrep:
             self._work, self._say = work, say  # run by result(), in its thread
 
     def result(self) -> list:
-        """Per place (the scan's best, then its rival if any): (guess, inclusion
-        dict, the inclusion's start modulus, the model with the inclusion, the
-        current model on its mesh); waits for the models."""
+        """Per place (the scan's best, then its rival if any): (guess, the
+        inclusion's start modulus, the model with the inclusion (its ``inclusion``
+        the guess' dict), the current model on its mesh); waits for the models."""
         if self.error is not None and self._thread is None:
             raise self.error
         if self.guess is None:
@@ -1435,7 +1434,7 @@ def _try_inclusion(problem: EffectProblem, base: Candidate, tracked, noise, lik0
         say(f"the model with the inclusion at the rival place failed ({prep.rival_error}); the scan's best "
             "place alone is tried")
     fitted = []
-    for k, (guess, inclusion, start_kPa, cp, same_mesh) in enumerate(places):
+    for k, (guess, start_kPa, cp, same_mesh) in enumerate(places):
         if k:
             say(f"fitting the inclusion at the rival place {np.round(guess.center_mm, 1).tolist()} mm")
         start = {**base.parameters, f"E_{guess.name}_kPa": start_kPa}
@@ -1450,8 +1449,7 @@ def _try_inclusion(problem: EffectProblem, base: Candidate, tracked, noise, lik0
         f"and by {rival_gained:,.0f} at {np.round(other.inclusion['center_mm'], 1).tolist()} mm"
         f"{' (the rival place)' if k else ''}")
     other.problem.release()
-    rival = dict(other.inclusion, stiffer=places[j][0].stiffer)
-    best.inclusion = with_fitted_rival(best.inclusion, rival, gained, rival_gained)
+    best.inclusion = with_fitted_rival(best.inclusion, places[j][0], gained, rival_gained)
     best.evidence = _evidence("inclusion", problem, base, best, tracked, lik0, None)
     return best
 

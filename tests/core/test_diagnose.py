@@ -1069,7 +1069,7 @@ def test_the_rival_place_fitted_too_is_kept_as_what_it_did():
 
     placed = {"name": "I", "center_mm": list(best), "radius_mm": 6.4,
               "also_fits": r.as_inclusion()["also_fits"]}  # the scan's words, replaced
-    rival = {"name": "I", "center_mm": list(other), "radius_mm": 6.4, "stiffer": True}
+    rival = r  # the rival place, as the diagnosis fitted it
     resolved = with_fitted_rival(placed, rival, 520.0, 300.0)
     assert "also_fits" not in resolved and resolved["rival_fitted"] == {
         "center_mm": list(other), "radius_mm": 6.4, "stiffer": True, "explained": 300.0, "explained_here": 520.0,

@@ -76,10 +76,17 @@ class InclusionGuess:
         out = {"name": self.name, **self.as_parameters()}
         if self.rival is not None:
             c, r, stiffer, gain = self.rival
-            out["also_fits"] = {"center_mm": [round(float(v), 3) for v in c], "radius_mm": round(float(r), 3),
-                                "stiffer": bool(stiffer), "explained": round(float(gain), 1),
-                                "explained_here": round(float(self.explained), 1)}
+            out["also_fits"] = other_place(c, r, stiffer, gain, self.explained)
         return out
+
+
+def other_place(center_mm, radius_mm: float, stiffer: bool, explained: float, explained_here: float) -> dict:
+    """Another place an inclusion was tried or could be, as the inclusion's dict keeps
+    it (``also_fits``, ``rival_fitted``): centre and radius, stiffer or not, and what
+    it explains against what the inclusion's own place explains."""
+    return {"center_mm": [round(float(v), 3) for v in center_mm], "radius_mm": round(float(radius_mm), 3),
+            "stiffer": bool(stiffer), "explained": round(float(explained), 1),
+            "explained_here": round(float(explained_here), 1)}
 
 
 # A sphere that does not overlap the best one and explains at least this share of
@@ -91,19 +98,17 @@ class InclusionGuess:
 RIVAL_SHARE = 0.9
 
 
-def with_fitted_rival(inclusion: dict, rival: dict, gained: float, rival_gained: float) -> dict:
+def with_fitted_rival(inclusion: dict, rival: InclusionGuess, gained: float, rival_gained: float) -> dict:
     """The inclusion ``inclusion`` (name, center_mm, radius_mm) after it and the
-    scan's rival place (``rival``: the same keys and ``stiffer``) were both meshed
-    and fitted, and this one lowered chi2 more (by ``gained``, against the rival's
-    ``rival_gained``). The rival stays ``also_fits`` (``fitted``: True) when it
-    still explains at least RIVAL_SHARE as much; else it is kept as
-    ``rival_fitted``, a place tried and found to fit worse."""
+    scan's rival place (``rival``) were both meshed and fitted, and this one
+    lowered chi2 more (by ``gained``, against the rival's ``rival_gained``). The
+    rival stays ``also_fits`` (``fitted``: True) when it still explains at least
+    RIVAL_SHARE as much; else it is kept as ``rival_fitted``, a place tried and
+    found to fit worse."""
     out = {k: v for k, v in inclusion.items() if k not in ("also_fits", "rival_fitted")}
-    other = {"center_mm": [round(float(v), 3) for v in rival["center_mm"]],
-             "radius_mm": round(float(rival["radius_mm"]), 3), "stiffer": bool(rival["stiffer"]),
-             "explained": round(float(rival_gained), 1), "explained_here": round(float(gained), 1), "fitted": True}
     ambiguous = gained > 0 and rival_gained >= RIVAL_SHARE * gained
-    out["also_fits" if ambiguous else "rival_fitted"] = other
+    out["also_fits" if ambiguous else "rival_fitted"] = {
+        **other_place(rival.center_mm, rival.radius_mm, rival.stiffer, rival_gained, gained), "fitted": True}
     return out
 
 
