@@ -187,10 +187,35 @@ def _material_drops(before: dict, after: dict) -> dict:
             if g is not None and g >= MATERIAL_CHI2_PER_COMPONENT}
 
 
-def not_material_text() -> str:
-    """Why a candidate that earns its parameters is not material, in words."""
-    return (f"it removes less than {MATERIAL_FRACTION:.0%} of the error beyond the noise and lowers the chi2 by "
-            f"less than {MATERIAL_CHI2_PER_COMPONENT:g} per measurement")
+def not_material_text(before: dict | None = None, after: dict | None = None) -> str:
+    """Why a candidate that earns its parameters is not material, in words: with
+    the current model's misfit ``before`` and the candidate's ``after``, what it
+    removed in each channel, or that the channel's error was already within
+    MATERIAL_MIN of its noise floor (nothing there to explain), and how far it
+    lowered the chi2; without them, the rule alone."""
+    generic = (f"it removes less than {MATERIAL_FRACTION:.0%} of the error beyond the noise and lowers the chi2 by "
+               f"less than {MATERIAL_CHI2_PER_COMPONENT:g} per measurement")
+    if not before or not after:
+        return generic
+    shares, drops = explained(before, after), chi2_drop_per_component(before, after)
+    removed, within = [], []
+    for ch, unit in (("displacement", "px"), ("force", "N")):
+        e0, floor = before.get(f"{ch}_excess_{unit}"), before.get(f"{ch}_floor_{unit}")
+        if e0 is None or floor is None:
+            continue
+        if shares.get(ch) is not None:
+            removed.append(f"{max(shares[ch], 0.0):.0%} of the {ch}'s error beyond the noise")
+        elif floor > 0:
+            within.append(f"the {ch} ({e0:.2g} against {floor:.3g} {unit})")
+    known = [g for g in drops.values() if g is not None]
+    if not removed and not within or not known:
+        return generic
+    parts = ([f"the current model's error beyond the noise is already within {MATERIAL_MIN:g} times its noise "
+              f"floor in {' and '.join(within)}, as the model's own mesh error leaves it with no hidden effect"]
+             if within else [])
+    parts += [f"it removes {' and '.join(removed)} (less than {MATERIAL_FRACTION:.0%})"] if removed else []
+    return (f"{'; '.join(parts)}, and it lowers the chi2 by {max(max(known), 0.0):.2g} per measurement (less than "
+            f"{MATERIAL_CHI2_PER_COMPONENT:g})")
 
 
 def is_material(before: dict, after: dict) -> bool:
@@ -272,7 +297,7 @@ def support_warning(d: "Diagnosis", c: "Candidate", parent: int) -> str:
                 f"{c.score:+.1f}): the data do not show it, and version {parent} explains them as well; revert to "
                 f"version {parent}")
     if not c.material:
-        why = c.negligible or not_material_text()
+        why = c.negligible or c.unmet or not_material_text()
         return f"{c.effect} is not a finding ({why}); version {parent} is the simpler model of these measurements"
     return ""
 
@@ -380,6 +405,9 @@ class Candidate:
     # (scoring_reference)
     reference: dict | None = None
     negligible: str = ""  # why the fitted effect is physically no finding, whatever it removes ("" if it is one)
+    # why a candidate that earns its parameters is not material, from the misfits it was
+    # scored with (not_material_text); "" when it is material (or read from an older session)
+    unmet: str = ""
     # fitted when the diagnosis ran, but its model (``problem``) is not held: read back from
     # a session file (Diagnosis.from_state), or dropped (drop_model); rebuilt when it is added
     restored: bool = False
@@ -417,7 +445,7 @@ class Candidate:
             return text
         if self.negligible:
             return f"{text} (but {self.negligible}, so it is not a verdict)"
-        return f"{text} (but {not_material_text()}, so it is not a verdict)"
+        return f"{text} (but {self.unmet or not_material_text()}, so it is not a verdict)"
 
     def to_json_dict(self) -> dict:
         params = dict(self.parameters)
@@ -603,9 +631,10 @@ class Diagnosis:
                 f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement, or fit no physical change")
         misses = self.near_misses()[:2]
         if not misses:
-            return text
+            return self._within_floor_text(earning) or text
         settle = (f"Frames recorded closer in strain (about 2% apart) are tracked more precisely and usually settle "
-                  f"it; if the setup makes {' or '.join(INFO[c.effect].title for c, _ in misses)} plausible, add "
+                  f"it; if the setup makes {'it' if len(misses) == 1 else 'one of them'} plausible "
+                  f"({'; '.join(INFO[c.effect].title for c, _ in misses)}), add "
                   f"{'it' if len(misses) == 1 else 'that effect'} and compare the versions")
         if len(misses) == 2:
             (a, fa), (b, fb) = misses
@@ -622,6 +651,32 @@ class Diagnosis:
         return (f"{text}. But {c.effect} comes close: it lowers the misfit by more than its parameters cost "
                 f"(score {c.score:+,.0f}) and removes {share:.0%} of the error beyond the noise, short of the "
                 f"{MATERIAL_FRACTION:.0%} a verdict needs{with_it}. {settle}")
+
+    def _within_floor_text(self, earning: list[Candidate]) -> str:
+        """Why the verdict is none when the current model's error is already within
+        MATERIAL_MIN of its noise floor in every channel: that, and the best
+        candidate that earned its parameters with a physical change (the data
+        cannot tell it from the model's own mesh error); "" else."""
+        m = self.baseline.misfit
+        ratios = {}
+        for ch, unit in (("displacement", "px"), ("force", "N")):
+            e0, floor = m.get(f"{ch}_excess_{unit}"), m.get(f"{ch}_floor_{unit}")
+            if e0 is None or not floor:
+                return ""
+            ratios[ch] = e0 / floor
+        physical = [c for c in earning if not c.negligible]
+        if max(ratios.values()) >= MATERIAL_MIN or not physical:
+            return ""
+        best = max(physical, key=lambda c: c.score)
+        drop = max((g for g in chi2_drop_per_component(scoring_reference(self.baseline, best), best.misfit).values()
+                    if g is not None), default=0.0)
+        return (f"No candidate is a finding: the current model's error beyond the noise is already within "
+                f"{MATERIAL_MIN:g} times its noise floor (the displacement's {ratios['displacement']:.2f} times, the "
+                f"force's {ratios['force']:.2f} times), as the model's own mesh error leaves it with no hidden "
+                f"effect. A finding must then lower the chi2 by {MATERIAL_CHI2_PER_COMPONENT:g} per measurement; the "
+                f"best candidate, {best.effect} (score {best.score:+,.0f}), lowers it by {max(drop, 0.0):.2g}. These "
+                f"measurements cannot show a further effect; if the setup makes it plausible "
+                f"({INFO[best.effect].title}), add it and compare the versions")
 
     def tie_advice(self) -> str:
         """What to do about a near tie, in words ("" when there is none)."""
@@ -1226,6 +1281,7 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
             cand.score = ref["chi2"] - cand.misfit["chi2"] - cand.n_parameters * lnN
             cand.negligible = _negligible(eff, problem, cand)
             cand.material = is_material(ref, cand.misfit) and not cand.negligible
+            cand.unmet = "" if cand.material or cand.negligible else not_material_text(ref, cand.misfit)
             note = materiality_note(ref, cand.misfit) if cand.material and cand.score > 0 else ""
             if note:
                 cand.evidence = f"{cand.evidence}; {note}"

@@ -564,6 +564,62 @@ def test_a_chi2_that_falls_far_beyond_the_mesh_error_is_material():
         "force": None, "displacement": None}
 
 
+def test_why_a_candidate_is_no_finding_says_what_it_did():
+    """Blind paper-size seed 21003 (sliding-bottom and a Poisson's ratio of 0.4
+    hidden at once; /tmp/s12 in docs/model-check.md): with compressibility added,
+    sliding-bottom took the displacement error beyond the noise from 0.160 px to
+    0.0 and lowered the images' chi2 from 454.8 to 337.2 over 242 components
+    (0.49 each). Not material: the error was already within 1.5 times its floor
+    (0.122 px), as a mesh's own error leaves it. The evidence used to say "it
+    removes less than 30% of the error", which was false; it now says what the
+    candidate did, and the verdict none says why nothing can be a finding here."""
+    from app.core.diagnose import (MATERIAL_MIN, Candidate, Diagnosis, NoiseModel, choose_verdict, is_material,
+                                   not_material_text)
+
+    def mis(chi2_images, excess_px, force_excess_N=0.0043):
+        return {"chi2": 1552.99 + chi2_images, "chi2_force": 1552.99, "chi2_images": chi2_images,
+                "force_rms_N": 0.0201, "displacement_rms_px": 0.5, "displacement_excess_px": excess_px,
+                "displacement_floor_px": 0.1222, "force_excess_N": force_excess_N, "force_floor_N": 0.0196,
+                "n_force": 1481, "n_images": 242}
+
+    before, after = mis(454.85, 0.160), mis(337.17, 0.0)
+    assert before["displacement_excess_px"] < MATERIAL_MIN * before["displacement_floor_px"]
+    assert not is_material(before, after)
+    why = not_material_text(before, after)
+    assert "less than 30%" not in why
+    assert why == ("the current model's error beyond the noise is already within 1.5 times its noise floor in the "
+                   "displacement (0.16 against 0.122 px) and the force (0.0043 against 0.0196 N), as the model's own "
+                   "mesh error leaves it with no hidden effect, and it lowers the chi2 by 0.49 per measurement (less "
+                   "than 2)")
+    # a channel with something to explain: the share it removed
+    partial = not_material_text(mis(454.85, 0.5), mis(400.0, 0.4))
+    assert "it removes 20% of the displacement's error beyond the noise (less than 30%)" in partial
+    assert "floor in the force (0.0043" in partial and "the displacement (0.5" not in partial
+    # without the misfits (a session saved before): the rule alone
+    assert not_material_text() == not_material_text({}, {})
+    slide = Candidate("sliding-bottom", ("compressibility", "sliding-bottom"),
+                      {"E_B_kPa": 17.97, "E_A_kPa": 61.5, "nu": 0.392}, {}, after, 1, 110.2, "slides", unmet=why)
+    assert slide.explanation.endswith(f"(but {why}, so it is not a verdict)")
+    assert Candidate.from_state(slide.state()).unmet == why
+    base = Candidate("", ("compressibility",), {"E_B_kPa": 16.37, "E_A_kPa": 69.58, "nu": 0.456}, {}, before)
+    d = Diagnosis("x", base, [slide], choose_verdict([slide]), NoiseModel(0.0196, 1481, 0.122, 242), 1.0)
+    text = d.none_text()
+    assert d.verdict == "none" and d.near_misses() == []
+    assert "remove less than 30%" not in text
+    assert text.startswith("No candidate is a finding: the current model's error beyond the noise is already within "
+                           "1.5 times its noise floor (the displacement's 1.31 times, the force's 0.22 times)")
+    assert "the best candidate, sliding-bottom (score +110), lowers it by 0.49" in text
+    assert text.endswith("if the setup makes it plausible (specimen slides on the table), add it and compare the "
+                         "versions")
+    # a best candidate that fits no physical change is not offered
+    neg = Candidate("compressibility", ("compressibility",), {"nu": 0.486}, {}, after, 1, 150.0, "", negligible="x")
+    assert "plausible" not in Diagnosis("x", base, [neg], "none", NoiseModel(0.0196, 1481, 0.122, 242),
+                                        1.0).none_text()
+    # with an error beyond 1.5 times its floor, no such sentence
+    assert "already within" not in Diagnosis("x", Candidate("", (), {}, {}, mis(454.85, 0.3)), [slide], "none",
+                                              NoiseModel(0.0196, 1481, 0.122, 242), 1.0).none_text()
+
+
 def test_history_is_immutable_and_round_trips():
     h = ModelHistory()
     h1 = h.with_version((), {"E_B_kPa": 10.0}, {"total": -1.0}, {"force_rms_N": 0.3, "displacement_rms_px": 1.0})
