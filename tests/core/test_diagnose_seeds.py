@@ -53,6 +53,8 @@ def test_no_hidden_effect_gives_none(tmp_path_factory, case):
     assert d.verdict == "none", d.lines()
     # nothing material: whatever scores above zero explains little of the error beyond the noise
     assert not any(c.material and c.score > 0 for c in d.candidates), d.lines()
+    # and no boundary effect is said to hide an inclusion (the masked-pair screen ran: the verdict is none)
+    assert d.masked is None and "hide each other" not in d.none_text(), d.lines()
 
 
 def test_a_new_mesh_alone_is_not_credited_to_an_inclusion(tmp_path_factory):
