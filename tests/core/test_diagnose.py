@@ -667,6 +667,24 @@ def test_a_boundary_effect_that_hides_an_inclusion_is_named_with_a_none_verdict(
     # without the masked pair: the usual warning
     assert "revert to version 0" in support_warning(Diagnosis("x", base, [slip], "none", noise, 1.0), slip, 0)
     assert Diagnosis("x", base, [slip], "none", noise, 1.0).masked_text() == ""
+    # blind seed 21009 (the slip over a sphere further left): the verdict was an inclusion 11.3 mm off, at the
+    # probe's corner (chi2 2,181), and with it added nothing more was found; scanned on the slipping model the
+    # misfit pointed to a sphere 3.4 mm from the truth, the pair estimated at 1,850 (margin 331)
+    assert masked_pair(2181.2, {"probe-slip": (3085.0, 1234.9), "sliding-bottom": (6397.0, 3700.0)}, ln_n) == \
+        "probe-slip"
+    incl = Candidate("inclusion", ("inclusion",), {}, {}, mis(2181.2), 4, 471.2, "a stiffer region", material=True)
+    m9 = {**masked, "inclusion": {"name": "I", "center_mm": [28.7, 45.0, 85.2], "radius_mm": 5.4},
+          "estimated_chi2": 1850.1, "best_single_chi2": 2181.2}
+    d9 = Diagnosis("x", base, [incl, slip], "inclusion", noise, 1.0, masked=m9)
+    assert d9.none_text() == ""
+    assert d9.masked_text().startswith("probe-slip and the inclusion may hide each other: alone, probe-slip does not "
+                                       "fit better (score -427)")
+    assert "(the scan's estimate: chi2 1,850 against 2,181). Before adding the inclusion, add probe-slip" in \
+        d9.masked_text()
+    assert f"masked: {d9.masked_text()}" in d9.lines()
+    from app.gui.models.modelcheck import verdict_parts
+
+    assert verdict_parts(d9)[1].endswith(f"But {d9.masked_text()}.")
 
 
 def test_history_is_immutable_and_round_trips():
@@ -799,6 +817,8 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     assert len(noted) == int(short_of_memory), d.lines()
     monkeypatch.delenv("ELASTOID_MEMORY_GB", raising=False)
     assert d.verdict == "inclusion", d.lines()
+    # the probe does not slip here: the masked-pair screen (it runs with an inclusion verdict) names nothing
+    assert d.masked is None and not any(line.startswith("masked:") for line in d.lines()), d.lines()
     c = d.candidate("inclusion")
     synthetic.assert_mesh_committed(exp, c.inclusion)  # the sphere's mesh too: the outcome depends on it
     assert np.linalg.norm(np.array(c.inclusion["center_mm"]) - c_true) < 3.0, c.inclusion

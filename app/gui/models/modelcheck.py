@@ -441,7 +441,8 @@ def verdict_parts(diagnosis) -> tuple[str, str, str]:
         return "Verdict: none", f". {d.none_text()}.", ""
     c = d.candidate(d.verdict)
     ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
-    return f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.", d.tie_advice() or ""
+    masked = f" But {d.masked_text()}." if d.masked else ""
+    return f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.{masked}", d.tie_advice() or ""
 
 
 def report_data(snapshot) -> dict | None:
