@@ -133,15 +133,24 @@ MATERIAL_FRACTION = 0.3  # of the current model's error an effect must remove to
 MATERIAL_MIN = 1.5
 
 
+CHANNEL_UNITS = {"force": "N", "displacement": "px"}
+
+
+def excess_and_floor(misfit: dict, channel: str) -> tuple:
+    """A channel's error beyond the noise and its noise floor in ``misfit`` (None
+    where a misfit saved before they were recorded lacks them)."""
+    unit = CHANNEL_UNITS[channel]
+    return misfit.get(f"{channel}_excess_{unit}"), misfit.get(f"{channel}_floor_{unit}")
+
+
 def explained(before: dict, after: dict) -> dict:
     """How much of the current model's error (the misfit beyond the noise) a
     candidate removes, per channel: {"force": fraction, "displacement": fraction},
     with None for a channel whose current error is below MATERIAL_MIN of its floor
     (there is nothing there to explain)."""
     out = {}
-    for ch, unit in (("force", "N"), ("displacement", "px")):
-        e0, e1 = before.get(f"{ch}_excess_{unit}"), after.get(f"{ch}_excess_{unit}")
-        floor = before.get(f"{ch}_floor_{unit}")
+    for ch in ("force", "displacement"):
+        (e0, floor), (e1, _) = excess_and_floor(before, ch), excess_and_floor(after, ch)
         if e0 is None or e1 is None or floor is None or e0 < MATERIAL_MIN * floor or e0 <= 0:
             out[ch] = None
         else:
@@ -199,14 +208,14 @@ def not_material_text(before: dict | None = None, after: dict | None = None) -> 
         return generic
     shares, drops = explained(before, after), chi2_drop_per_component(before, after)
     removed, within = [], []
-    for ch, unit in (("displacement", "px"), ("force", "N")):
-        e0, floor = before.get(f"{ch}_excess_{unit}"), before.get(f"{ch}_floor_{unit}")
+    for ch in ("displacement", "force"):
+        e0, floor = excess_and_floor(before, ch)
         if e0 is None or floor is None:
             continue
         if shares.get(ch) is not None:
             removed.append(f"{max(shares[ch], 0.0):.0%} of the {ch}'s error beyond the noise")
         elif floor > 0:
-            within.append(f"the {ch} ({e0:.2g} against {floor:.3g} {unit})")
+            within.append(f"the {ch} ({e0:.2g} against {floor:.3g} {CHANNEL_UNITS[ch]})")
     known = [g for g in drops.values() if g is not None]
     if not removed and not within or not known:
         return generic
@@ -642,7 +651,7 @@ class Diagnosis:
             return ""
         from app.core.effects.inclusion import place_text
 
-        c = self.candidate(m["effect"]) if m["effect"] in [x.effect for x in self.candidates] else None
+        c = next((x for x in self.candidates if x.effect == m["effect"]), None)
         alone = f" (score {c.score:+,.0f})" if c is not None and math.isfinite(c.score) else ""
         kind = "stiffer" if m["stiffer"] else "softer"
         where = (f"alone, {m['effect']} does not fit better{alone}, yet with it in the model the misfit points to a "
@@ -689,10 +698,9 @@ class Diagnosis:
         MATERIAL_MIN of its noise floor in every channel: that, and the best
         candidate that earned its parameters with a physical change (the data
         cannot tell it from the model's own mesh error); "" else."""
-        m = self.baseline.misfit
         ratios = {}
-        for ch, unit in (("displacement", "px"), ("force", "N")):
-            e0, floor = m.get(f"{ch}_excess_{unit}"), m.get(f"{ch}_floor_{unit}")
+        for ch in ("displacement", "force"):
+            e0, floor = excess_and_floor(self.baseline.misfit, ch)
             if e0 is None or not floor:
                 return ""
             ratios[ch] = e0 / floor
