@@ -175,12 +175,22 @@ def check_mesh(ctx: _Context) -> str:
     settings = MeshSettings(edge_mm=10.0, probe_edge_mm=5.0, epsilon=2e-3)
     # use_cache=False: the point is to run fTetWild in its spawned child (a frozen app re-runs
     # its own executable for it, which works only with multiprocessing.freeze_support())
-    mesh = build_mesh(SIZE_MM, PROBE_RECT_MM, regions, settings, use_cache=False, timeout_s=300.0)
-    q = quality(mesh, regions)
+    # fTetWild is not deterministic: its meshes of this box had smallest dihedral angles of
+    # 3.8-23 deg in 25 runs here, but one CI run (2026-11-29) got a sliver of 0.47 deg. A
+    # sliver in one run says nothing of the installation, so a second mesh is made; two in a
+    # row fail the check
+    retried = ""
+    for attempt in range(2):
+        mesh = build_mesh(SIZE_MM, PROBE_RECT_MM, regions, settings, use_cache=False, timeout_s=300.0)
+        q = quality(mesh, regions)
+        if q.min_dihedral_deg > 0.5:
+            break
+        if attempt:
+            raise RuntimeError(f"degenerate tetrahedra in two meshes (min dihedral angles {retried} and "
+                               f"{q.min_dihedral_deg:.2f} deg)")
+        retried = f"{q.min_dihedral_deg:.2f}"
     if mesh.n_tets < 500 or q.n_probe_nodes < 4:
         raise RuntimeError(f"suspicious mesh: {mesh.n_tets} tets, {q.n_probe_nodes} probe-face vertices")
-    if not q.min_dihedral_deg > 0.5:
-        raise RuntimeError(f"degenerate tetrahedra (min dihedral angle {q.min_dihedral_deg:.2f} deg)")
     for name in ("A", "B"):
         m, g = q.region_volume_mm3[name], q.region_geometric_volume_mm3[name]
         if abs(m - g) > 0.05 * g:
@@ -190,8 +200,9 @@ def check_mesh(ctx: _Context) -> str:
     if abs(vol - box) > 0.005 * box:  # fTetWild's envelope allows a little
         raise RuntimeError(f"the tets fill {vol:.0f} mm3 of the {box:.0f} mm3 box")
     ctx.mesh, ctx.regions = mesh, regions
+    again = f"; meshed twice, the first had a sliver of {retried} deg" if retried else ""
     return (f"{mesh.n_nodes} nodes, {mesh.n_tets} tets, inclusion volume {q.region_volume_mm3['A']:.0f} mm3 "
-            f"(sphere {q.region_geometric_volume_mm3['A']:.0f})")
+            f"(sphere {q.region_geometric_volume_mm3['A']:.0f}){again}")
 
 
 def check_forward(ctx: _Context) -> str:
