@@ -82,6 +82,10 @@ DIAGNOSE_CASES = {
     "compressibility": (14, dict(nu=0.3)),
     "inclusion": (13, dict(hidden_regions=(Region("C", "sphere", center_mm=(26.0, 20.0, 14.0), radius_mm=4.0),),
                            moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})),
+    # the probe slips over a stiffer sphere near its right end, 5 mm deep: each hides the other
+    "slip-inclusion": (30, dict(effects=("probe-slip",),
+                                hidden_regions=(Region("C", "sphere", center_mm=(28.0, 20.0, 25.0), radius_mm=4.0),),
+                                moduli_kPa={"B": 15.0, "A": 45.0, "C": 60.0})),
 }
 # A second geometry: a soft, flat, off-centre ellipsoid (9 kPa in 24 kPa tissue) in a
 # 44 x 40 x 32 mm block, with its own seeds (the "e-" cases)

@@ -461,6 +461,32 @@ def test_a_located_inclusion_close_to_its_surroundings_modulus_is_no_finding():
     assert negligible(41.4, [("A", 0.6, 52.3), ("B", 0.4, 15.0)]) == ""
 
 
+def test_a_located_inclusion_fitted_at_a_bound_of_its_modulus_is_no_finding():
+    """Blind paper seeds 21014 and 21017 (the probe slipping over a sphere; the slip
+    added): the next diagnoses made the inclusion the verdict at a bound of its
+    modulus, 0.1 kPa 26 mm from the hidden sphere, and 10,000 kPa 41 mm from it.
+    No right inclusion verdict of the 78 recorded at paper size was at a bound
+    (3.0-487 kPa); the five other fits at a bound stood in for other effects.
+    Scored +144 and +465, such a sphere is now no finding, whatever it removes."""
+    from app.core.diagnose import Candidate
+    from app.core.effects.inclusion import at_bound, negligible
+
+    why = negligible(1e4, [("B", 1.0, 18.3)])
+    assert why.startswith("its modulus went to the fit's upper bound (10,000 kPa: a rigid body), where a sphere "
+                          "stands for a pattern it cannot represent"), why
+    assert "if a hard body (bone, a calcification, an instrument) is plausible there, add the inclusion" in why
+    why = negligible(0.1, [("B", 0.7, 18.1), ("A", 0.3, 63.9)])
+    assert why.startswith("its modulus went to the fit's lower bound (0.1 kPa: as soft as a fluid)"), why
+    assert "a fluid-filled cyst" in why
+    # the right verdicts' extremes: the 10 kPa sphere of 21017 fitted at 3.0, the out-of-view one at 487
+    for e in (3.02, 487.14, 9000.0, 0.2):
+        assert at_bound(e) == "" and negligible(e, [("B", 1.0, 18.0)]) == "", e
+    c = Candidate("inclusion", ("inclusion",), {"E_I_kPa": 1e4}, {}, {"chi2": 1800.0}, 4, 465.0, "a stiffer region",
+                  negligible=negligible(1e4, [("B", 1.0, 18.3)]))
+    assert "(but its modulus went to the fit's upper bound" in c.explanation and c.explanation.endswith(
+        "so it is not a verdict)"), c.explanation
+
+
 def test_a_verdict_of_none_says_why_and_names_an_effect_that_came_close():
     """Numbers from the paper-size hidden Poisson's ratio of 0.40 with three frames
     (seed 1104, bench/paper_effects.py --seed-offset 1000): compressibility fitted
@@ -629,17 +655,31 @@ def test_a_boundary_effect_that_hides_an_inclusion_is_named_with_a_none_verdict(
     the pair's estimate 1,787 against 2,046 for the best single candidate, a
     margin of 259, 6.8 times the pair's 5 parameters' cost (ln N = 7.6). On the
     sixteen paper phantoms with a verdict of none the margins were at most -2
-    (probe-slip) and -264 (sliding-bottom): no pair named (the demo's below)."""
-    from app.core.diagnose import (MASKED_MARGIN, Candidate, Diagnosis, NoiseModel, masked_pair, support_warning)
+    (probe-slip) and -264 (sliding-bottom), and on the 14 with one sphere hidden
+    and found at most +25: no pair named (the demo's below)."""
+    from app.core.diagnose import (MASKED_MARGIN, Candidate, Diagnosis, NoiseModel, masked_pair, pair_screen,
+                                   support_warning)
 
     ln_n = 7.6
     assert masked_pair(2046.5, {"probe-slip": (2777.0, 989.8), "sliding-bottom": (5738.0, 3270.7)}, ln_n) == \
         "probe-slip"
     # the demo: probe-slip 1,884 - 183 against 1,672 (margin -30), sliding-bottom 6,715 - 4,623 (-421)
     assert masked_pair(1672.0, {"probe-slip": (1884.0, 183.0), "sliding-bottom": (6715.0, 4623.0)}, ln_n) == ""
-    # a margin must pay twice the pair's parameters (5 x ln N), not merely be positive
+    # blind seed 21012 (the slip over a sphere to the right; the inclusion verdict its mirror image): probe-slip's
+    # pair estimated at 1,808 against 1,876, a margin of 68 (the cost 5 ln N is 38); the wide block's single
+    # sphere (nothing else hidden): 2,299 against 2,324, a margin of 25, no pair
+    assert masked_pair(1876.4, {"probe-slip": (2196.4, 388.2), "sliding-bottom": (5000.0, 2424.1)}, ln_n) == \
+        "probe-slip"
+    assert masked_pair(2323.7, {"probe-slip": (6120.3, 3821.7), "sliding-bottom": (9000.0, 4240.6)}, ln_n) == ""
+    # a margin must pay the pair's parameters (MASKED_MARGIN x 5 ln N), not merely be positive
     assert masked_pair(2000.0, {"probe-slip": (2000.0, 5 * ln_n * MASKED_MARGIN - 1.0)}, ln_n) == ""
     assert masked_pair(2000.0, {"probe-slip": (2000.0, 5 * ln_n * MASKED_MARGIN + 1.0)}, ln_n) == "probe-slip"
+    # the screen's figures, whether or not it names a pair (kept in the JSON and the session)
+    screen = pair_screen(1672.0, {"probe-slip": (1884.0, 183.0), "sliding-bottom": (6715.0, 4623.0)}, ln_n)
+    assert [s["effect"] for s in screen] == ["probe-slip", "sliding-bottom"]
+    assert screen[0]["estimated_chi2"] == pytest.approx(1701.0) and screen[0]["margin"] == pytest.approx(-29.0)
+    assert screen[1]["margin"] == pytest.approx(-420.0)
+    assert all(s["needed"] == pytest.approx(MASKED_MARGIN * 5 * ln_n) for s in screen)
 
     def mis(chi2):
         return {"chi2": chi2, "force_rms_N": 0.02, "displacement_rms_px": 0.55, "force_excess_N": 0.004,
@@ -660,6 +700,10 @@ def test_a_boundary_effect_that_hides_an_inclusion_is_named_with_a_none_verdict(
     assert "chi2 1,787 against 2,046" in text and text.endswith("the next diagnosis names it")
     assert d.to_json_dict()["masked_pair"] == masked
     assert Diagnosis.from_state(d.state()).masked == masked
+    d.masked_screen = [{"effect": "probe-slip", "estimated_chi2": 1787.2, "margin": 259.3, "needed": 76.0}]
+    assert d.to_json_dict()["masked_screen"] == d.masked_screen
+    assert Diagnosis.from_state(d.state()).masked_screen == d.masked_screen
+    assert Diagnosis("x", base, [slip], "none", noise, 1.0).to_json_dict()["masked_screen"] is None
     # adding the slip it names: the version's note says why it fits worse, and what to do
     warn = support_warning(d, slip, 0)
     assert warn.startswith("probe-slip alone does not fit better than version 0 (score -427), as the diagnosis "
@@ -819,6 +863,8 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     assert d.verdict == "inclusion", d.lines()
     # the probe does not slip here: the masked-pair screen (it runs with an inclusion verdict) names nothing
     assert d.masked is None and not any(line.startswith("masked:") for line in d.lines()), d.lines()
+    assert [s["effect"] for s in d.masked_screen] == ["probe-slip"], d.masked_screen
+    assert d.masked_screen[0]["margin"] <= d.masked_screen[0]["needed"], d.masked_screen
     c = d.candidate("inclusion")
     synthetic.assert_mesh_committed(exp, c.inclusion)  # the sphere's mesh too: the outcome depends on it
     assert np.linalg.norm(np.array(c.inclusion["center_mm"]) - c_true) < 3.0, c.inclusion
