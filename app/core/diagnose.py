@@ -1360,7 +1360,7 @@ MASKING_EFFECTS = ("probe-slip", "sliding-bottom")
 # inclusion placed as the truth's mirror image; at 2x, this margin's first value,
 # it was missed). Where one effect or none is hidden, at most 25 (probe-slip): on
 # the sixteen paper phantoms whose verdict is none at most -2, on the 14 with one
-# sphere hidden and found -1,472 to +25 (the wide block's sphere; 14 for 15115);
+# sphere hidden and found -1,472 to +25 (the wide block's sphere; +14 out of view);
 # sliding-bottom's at most -91 (docs/model-check.md, "Two effects hidden at once
 # at paper size")
 MASKED_MARGIN = 1.0
@@ -1390,7 +1390,7 @@ def masked_pair(best_single_chi2: float, scans: dict, ln_n: float) -> str:
 
 
 def _masked_pair(ranked, base: Candidate, guess, tracked, noise, ln_n: float, say,
-                 cancel) -> tuple[dict | None, list]:
+                 cancel) -> tuple[dict | None, list | None]:
     """With the verdict none or inclusion, whether a boundary effect and an inclusion hide each
     other: each of MASKING_EFFECTS that was fitted is taken as the current model
     and its misfit scanned for an inclusion (6 s each at paper size). On blind
@@ -1400,12 +1400,13 @@ def _masked_pair(ranked, base: Candidate, guess, tracked, noise, ln_n: float, sa
     On 21009 the inclusion was the verdict, 11.3 mm off at the probe's corner,
     and with it added the slip was not found.
     Returns the effect, the place and the estimates (Diagnosis.masked) or None,
-    and the screen's figures (:func:`pair_screen`, Diagnosis.masked_screen).
+    and the screen's figures (:func:`pair_screen`, Diagnosis.masked_screen; None
+    when neither effect was fitted, and a scan that failed has no entry).
     A failed scan is no finding."""
     fitted = {c.effect: c for c in ranked if c.effect in MASKING_EFFECTS and c.problem is not None
               and c.misfit and math.isfinite(c.score)}
     if not fitted:
-        return None, []
+        return None, None
     singles = [c.misfit["chi2"] for c in ranked if c.misfit and math.isfinite(c.score)]
     best_single = min(singles + [base.misfit["chi2"] - guess.explained])
     scans, guesses = {}, {}

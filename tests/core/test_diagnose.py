@@ -465,8 +465,8 @@ def test_a_located_inclusion_fitted_at_a_bound_of_its_modulus_is_no_finding():
     """Blind paper seeds 21014 and 21017 (the probe slipping over a sphere; the slip
     added): the next diagnoses made the inclusion the verdict at a bound of its
     modulus, 0.1 kPa 26 mm from the hidden sphere, and 10,000 kPa 41 mm from it.
-    No right inclusion verdict of the 78 recorded at paper size was at a bound
-    (3.0-487 kPa); the five other fits at a bound stood in for other effects.
+    The 76 other inclusion verdicts recorded at paper size were fitted at 3.0-487
+    kPa; the five other fits at a bound stood in for other effects.
     Scored +144 and +465, such a sphere is now no finding, whatever it removes."""
     from app.core.diagnose import Candidate
     from app.core.effects.inclusion import at_bound, negligible

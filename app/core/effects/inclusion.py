@@ -239,12 +239,13 @@ def at_bound(e_kPa: float) -> str:
 def bound_text(e_kPa: float) -> str:
     """Why a located inclusion fitted at a bound of its modulus is no finding, or ""
     when it is not at a bound. The fit then keeps improving towards a rigid body
-    or a void: the sphere stands for a pattern it cannot represent (a wrong place,
+    or a fluid: the sphere stands for a pattern it cannot represent (a wrong place,
     or another effect). Of the 78 inclusion verdicts of the paper-size diagnoses
-    recorded until 2026-11-29, the 76 right ones were fitted at 3-487 kPa; the two
-    at a bound (0.1 and 10,000 kPa) were wrong places, 26 and 41 mm from the hidden
-    sphere, and the five other fits at a bound stood in for a Poisson's ratio, a
-    sliding bottom or nothing (docs/model-check.md, "A sphere fitted at a bound")."""
+    recorded until 2026-11-29, the two at a bound (0.1 and 10,000 kPa) were wrong
+    places, 26 and 41 mm from the hidden sphere; the 76 others (the misplaced ones
+    among them) were fitted at 3-487 kPa, and the five other fits at a bound stood
+    in for a Poisson's ratio, a sliding bottom or nothing (docs/model-check.md, "A
+    sphere fitted at a bound")."""
     bound = at_bound(e_kPa)
     if not bound:
         return ""
