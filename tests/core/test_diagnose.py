@@ -726,6 +726,14 @@ def test_a_boundary_effect_that_hides_an_inclusion_is_named_with_a_none_verdict(
     assert "(the scan's estimate: chi2 1,850 against 2,181). Before adding the inclusion, add probe-slip" in \
         d9.masked_text()
     assert f"masked: {d9.masked_text()}" in d9.lines()
+    # blind seed 21012: alone, the slip fitted better (+426) but was no finding (25% of the error beyond the noise)
+    slip12 = Candidate("probe-slip", ("probe-slip",), {"E_B_kPa": 18.1, "E_A_kPa": 61.0}, {}, mis(2196.4), 1, 425.8,
+                       "slides")
+    d12 = Diagnosis("x", base, [incl, slip12], "inclusion", noise, 1.0, masked=m9)
+    assert "alone, probe-slip fits better but is no finding (score +426), yet with it in the model" in \
+        d12.masked_text(), d12.masked_text()
+    assert support_warning(d12, slip12, 0).startswith("probe-slip alone fits better than version 0 but is no finding "
+                                                      "(score +426), as the diagnosis expected")
     from app.gui.models.modelcheck import verdict_parts
 
     assert verdict_parts(d9)[1].endswith(f"But {d9.masked_text()}.")
