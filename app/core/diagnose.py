@@ -1393,12 +1393,18 @@ def pair_screen(best_single_chi2: float, scans: dict, ln_n: float) -> list[dict]
     return out
 
 
+def _named(screen: list[dict]) -> str:
+    """The effect the screen's figures (:func:`pair_screen`) name: the best pair
+    beating the best single effect by more than the margin needed; "" when none does."""
+    named = [s for s in screen if s["margin"] > s["needed"]]
+    return min(named, key=lambda s: s["estimated_chi2"])["effect"] if named else ""
+
+
 def masked_pair(best_single_chi2: float, scans: dict, ln_n: float) -> str:
     """Which boundary effect, if any, hides an inclusion (see :func:`pair_screen`):
     the one whose pair beats the best single effect by more than the margin
     needed, the best such; "" when none does."""
-    named = [s for s in pair_screen(best_single_chi2, scans, ln_n) if s["margin"] > s["needed"]]
-    return min(named, key=lambda s: s["estimated_chi2"])["effect"] if named else ""
+    return _named(pair_screen(best_single_chi2, scans, ln_n))
 
 
 def _masked_pair(ranked, base: Candidate, guess, tracked, noise, ln_n: float, say,
@@ -1434,12 +1440,12 @@ def _masked_pair(ranked, base: Candidate, guess, tracked, noise, ln_n: float, sa
             c.problem.release(keep=base.problem)
         if g is not None:
             scans[effect], guesses[effect] = (c.misfit["chi2"], g.explained), g
-    screen = [{k: (round(v, 1) if isinstance(v, float) else v) for k, v in x.items()}
-              for x in pair_screen(best_single, scans, ln_n)]
+    raw = pair_screen(best_single, scans, ln_n)  # the decision reads the unrounded figures
+    screen = [{k: (round(v, 1) if isinstance(v, float) else v) for k, v in x.items()} for x in raw]
     for x in screen:
         say(f"{x['effect']} with an inclusion: margin {x['margin']:+,.0f} over the best single effect "
             f"({x['needed']:,.0f} needed)")
-    effect = masked_pair(best_single, scans, ln_n)
+    effect = _named(raw)
     if not effect:
         return None, screen
     g = guesses[effect]

@@ -236,6 +236,11 @@ def at_bound(e_kPa: float) -> str:
     return "upper" if e_kPa >= 0.99 * hi else "lower" if e_kPa <= 1.01 * lo else ""
 
 
+def _bound_kPa_text(e_kPa: float) -> str:
+    """A modulus at a bound of the fit as the sentences show it: 10,000 or 0.1."""
+    return f"{e_kPa:,.0f}" if e_kPa >= 10 else f"{e_kPa:g}"
+
+
 def bound_text(e_kPa: float) -> str:
     """Why a located inclusion fitted at a bound of its modulus is no finding, or ""
     when it is not at a bound. The fit then keeps improving towards a rigid body
@@ -251,8 +256,7 @@ def bound_text(e_kPa: float) -> str:
         return ""
     what = "a rigid body" if bound == "upper" else "as soft as a fluid"
     plausible = "a hard body (bone, a calcification, an instrument)" if bound == "upper" else "a fluid-filled cyst"
-    shown = f"{e_kPa:,.0f}" if e_kPa >= 10 else f"{e_kPa:.2g}"
-    return (f"its modulus went to the fit's {bound} bound ({shown} kPa: {what}), where a sphere stands for a "
+    return (f"its modulus went to the fit's {bound} bound ({_bound_kPa_text(e_kPa)} kPa: {what}), where a sphere stands for a "
             f"pattern it cannot represent (a wrong place or another effect) rather than an inclusion; if "
             f"{plausible} is plausible there, add the inclusion yourself and compare the versions")
 
@@ -264,9 +268,9 @@ def negligible(e_inclusion_kPa: float, tissue) -> str:
     NEGLIGIBLE_RATIO. ``tissue``: (region name, share of the sphere's volume,
     modulus kPa) of each described region it replaces (see surroundings). A
     sphere that extends a stiff region into soft tissue changes the soft part."""
-    at_bound = bound_text(e_inclusion_kPa)
-    if at_bound:
-        return at_bound
+    bound = bound_text(e_inclusion_kPa)
+    if bound:
+        return bound
     tissue = sorted(tissue, key=lambda t: -t[1])
     total = sum(f for _, f, _ in tissue)
     if not total:
@@ -296,19 +300,16 @@ def evidence(guess: InclusionGuess, depth_mm: float, e_ratio: float, before_px: 
     modulus, which the sentence calls a bound of the fit when it reached one (the
     ratio then says only "much stiffer", or "much softer")."""
     from app.core.effects import misfit_change
-    from app.core.identify import BOUNDS_KPA
 
     also = f"; but {also}" if also else ""
     where = f"a region the experiment does not describe, about {2 * guess.radius_mm:.0f} mm across at " \
             f"{depth_mm:.0f} mm depth"
     stiffness = f"{e_ratio:.1f}" if e_ratio >= 0.1 else f"{e_ratio:.2g}"  # not "0.0 times as stiff"
     stiffness += f" times {'stiffer' if e_ratio >= 1 else 'as stiff'}"
-    lo, hi = BOUNDS_KPA
     bound = "" if e_kPa is None else at_bound(e_kPa)
     if bound:
-        shown = f"{e_kPa:,.0f}" if e_kPa >= 10 else f"{e_kPa:g}"
         much = "stiffer" if e_ratio >= 1 else "softer"
-        stiffness += f" (the fit's {bound} bound, {shown} kPa: read it as much {much})"
+        stiffness += f" (the fit's {bound} bound, {_bound_kPa_text(e_kPa)} kPa: read it as much {much})"
     moved = misfit_change(before_px, after_px)
     change = f"on the same mesh the displacement misfit {moved}"
     if moved.startswith("falls"):  # as the sentence reads it: lower to the digits shown
