@@ -649,15 +649,25 @@ class Diagnosis:
                 out.append((c, max(shares)))
         return out
 
-    def none_text(self) -> str:
-        """Why the verdict is none, in words ("" when the verdict is an effect)."""
+    def none_text(self, with_masked: bool = True) -> str:
+        """Why the verdict is none, in words ("" when the verdict is an effect), the
+        masked pair's sentence appended unless ``with_masked`` is False."""
         if self.verdict != "none":
             return ""
+        masked = self.masked_text() if with_masked else ""
         earning = [c for c in self.candidates if c.misfit and math.isfinite(c.score) and c.score > 0]
         if not earning:
             return ("No candidate effect lowers the misfit by more than its parameters cost: the current model "
-                    "explains the data as well as the noise allows" + self.masked_text())
-        return self._none_text(earning) + self.masked_text()
+                    "explains the data as well as the noise allows" + masked)
+        return self._none_text(earning) + masked
+
+    def masked_sentence(self) -> str:
+        """The masked pair's sentence standing on its own: "But ..." after an
+        inclusion verdict, "Or ..." after none; "" when there is no masked pair."""
+        text = self.masked_text()
+        if not text:
+            return ""
+        return f"But {text}." if self.verdict != "none" else f"{text.removeprefix('. ')}."
 
     def masked_text(self) -> str:
         """The masked pair (:attr:`masked`) in words, as a sentence to append; "" when there is none."""
@@ -807,11 +817,11 @@ class Diagnosis:
             out.append(f"{i}. {c.effect:16s} score {c.score:9.1f}   {c.explanation}")
         out.append(f"verdict: {self.verdict}")
         if self.verdict == "none":
-            out.append(f"why: {self.none_text()}")
+            out.append(f"why: {self.none_text(with_masked=False)}")
         if self.rival:
             out.append(f"near tie: {self.tie_advice()}")
-        if self.masked and self.verdict != "none":
-            out.append(f"masked: {self.masked_text()}")
+        if self.masked:  # after none: "Or ..." (the why line's sentence it follows)
+            out.append(f"masked: {self.masked_text() if self.verdict != 'none' else self.masked_sentence()}")
         if self.memory_note:
             out.append(f"memory: {self.memory_note}")
         return out

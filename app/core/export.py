@@ -243,6 +243,23 @@ def _versions_svg(labels, series, width=560, height=220) -> str:
     return "".join(parts)
 
 
+def verdict_html(parts: tuple[str, str, str, str], tie_style: str = "") -> str:
+    """A diagnosis' verdict in words (head, the rest, the masked pair's sentence or
+    "", the near-tie advice or ""; app.gui.models.modelcheck.verdict_parts) as HTML
+    paragraphs: the head in bold, then the rest; the masked pair's sentence with its
+    first word ("But", "Or") in bold; the near tie after a warning sign, in
+    ``tie_style`` (a CSS declaration). The window's verdict box and the report."""
+    head, rest, masked, tie = parts
+    out = f"<b>{html.escape(head)}</b>{html.escape(rest)}"
+    if masked:
+        first, _, after = masked.partition(" ")
+        out += f"<br><br><b>{html.escape(first)}</b> {html.escape(after)}"
+    if tie:
+        style = f" style='{tie_style}'" if tie_style else ""
+        out += f"<br><br><span{style}>\u26a0 Near tie: {html.escape(tie)}.</span>"
+    return out
+
+
 def _model_check_html(mc: dict) -> str:
     """The model check section: the versions and their errors (as the window's
     history), the error chart, and the last diagnosis. ``mc`` is plain data (see
@@ -285,9 +302,9 @@ dashed, an inclusion the last diagnosis located; dotted, where it would fit near
             f"<tr{bold if c['verdict'] else ''}><td>{c['rank']}</td><td style='text-align:left' title='{e(c['title'])}'>{e(c['effect'])}</td>"
             f"<td>{e(c['score_text'])}</td><td style='text-align:left'>{e(c['parameters'])}</td>"
             f"<td style='text-align:left'>{e(c['evidence'])}</td></tr>" for c in d["candidates"])
-        tie = f"<br>Near tie: {e(d['tie'])}." if d.get("tie") else ""
+        verdict = verdict_html((d["head"], d["rest"], d.get("masked", ""), d.get("tie", "")))
         out.append(f"""<h3>Last diagnosis (of version {d['version']}, {d['seconds']:.0f} s)</h3>
-<p style="background:#fff6d6;padding:8px"><b>{e(d['head'])}</b>{e(d['rest'])}{tie}</p>
+<p style="background:#fff6d6;padding:8px">{verdict}</p>
 <p>Noise model: {e(d['noise'])}.</p>
 <table><tr><th>#</th><th>effect</th><th>score (BIC)</th><th>key parameters</th><th>evidence</th></tr>
 {cands}</table>""")

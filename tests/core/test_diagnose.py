@@ -734,9 +734,20 @@ def test_a_boundary_effect_that_hides_an_inclusion_is_named_with_a_none_verdict(
         d12.masked_text(), d12.masked_text()
     assert support_warning(d12, slip12, 0).startswith("probe-slip alone fits better than version 0 but is no finding "
                                                       "(score +426), as the diagnosis expected")
+    from app.core.export import verdict_html
     from app.gui.models.modelcheck import verdict_parts
 
-    assert verdict_parts(d9)[1].endswith(f"But {d9.masked_text()}.")
+    # the window and the report show the masked pair as a paragraph of its own, its first word in bold
+    parts = verdict_parts(d9)
+    assert parts[2] == f"But {d9.masked_text()}." and "may hide" not in parts[1]
+    assert "<br><br><b>But</b> probe-slip and the inclusion may hide each other" in verdict_html(parts)
+    # after a verdict of none the pair's sentence starts "Or", on the why line's heels in the terminal
+    head, rest, said, tie = verdict_parts(d)
+    assert said.startswith("Or probe-slip and an undescribed inclusion hide each other") and said.endswith("names it.")
+    assert "hide each other" not in rest and not tie and rest.startswith(". ")
+    assert f"masked: {said}" in d.lines() and f"why: {d.none_text(with_masked=False)}" in d.lines()
+    assert d.none_text() == d.none_text(with_masked=False) + d.masked_text()
+    assert "<b>Or</b> probe-slip and" in verdict_html(verdict_parts(d))
 
 
 def test_history_is_immutable_and_round_trips():

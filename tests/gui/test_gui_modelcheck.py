@@ -608,6 +608,14 @@ def test_a_verdict_of_none_names_an_effect_that_came_close(window, qtbot):
     assert "A 60.0 kPa (now 107.0)" in text and "as well as the noise allows" not in text
     assert not panel.add_verdict_button.isEnabled()  # a near miss is not a verdict
     assert "compressibility comes close" in report_data(snap)["diagnosis"]["rest"]
+    # with a masked pair (a slip and a sphere that hide each other) its sentence is a paragraph of its own
+    d.masked = {"effect": "probe-slip", "inclusion": {"name": "I", "center_mm": [57.5, 45.0, 85.2], "radius_mm": 5.4},
+                "stiffer": True, "estimated_chi2": 1787.2, "best_single_chi2": 2046.5}
+    panel._show(panel.model.apply((None, None, snap)))
+    text = panel.verdict_label.text()
+    assert "removes 29%" in text and "<br><br><b>Or</b> probe-slip and an undescribed inclusion hide each other" in text
+    data = report_data(snap)["diagnosis"]
+    assert data["masked"].startswith("Or probe-slip") and "hide each other" not in data["rest"]
 
 
 def test_the_diagnosis_says_when_memory_was_short(window, qtbot):

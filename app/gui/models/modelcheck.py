@@ -430,19 +430,22 @@ def diagnosis_rows(diagnosis) -> list[dict]:
     return rows
 
 
-def verdict_parts(diagnosis) -> tuple[str, str, str]:
-    """The verdict in words, plain text: (head, the rest, near-tie advice or ''),
-    e.g. ('Verdict: viscoelastic', ', time-dependent relaxation (Prony series). The
-    force relaxes by 16% ...', ''). The panel shows the head in bold; so does the report."""
+def verdict_parts(diagnosis) -> tuple[str, str, str, str]:
+    """The verdict in words, plain text: (head, the rest, the masked pair's sentence
+    or '', near-tie advice or ''), e.g. ('Verdict: viscoelastic', ', time-dependent
+    relaxation (Prony series). The force relaxes by 16% ...', '', ''). The panel
+    shows the head in bold, and the masked pair ("But ..." or "Or ...") and the near
+    tie each as a paragraph of their own; so does the report
+    (:func:`app.core.export.verdict_html`)."""
     from app.core.effects import INFO
 
     d = diagnosis
     if d.verdict == "none":
-        return "Verdict: none", f". {d.none_text()}.", ""
+        return "Verdict: none", f". {d.none_text(with_masked=False)}.", d.masked_sentence(), ""
     c = d.candidate(d.verdict)
     ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
-    masked = f" But {d.masked_text()}." if d.masked else ""
-    return f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.{masked}", d.tie_advice() or ""
+    return (f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.", d.masked_sentence(),
+            d.tie_advice() or "")
 
 
 def report_data(snapshot) -> dict | None:
@@ -459,9 +462,9 @@ def report_data(snapshot) -> dict | None:
     out = {"current": h.current, "versions": versions, "diagnosis": None, "maps": report_maps(snapshot)}
     d = snapshot.diagnosis
     if d is not None:
-        head, rest, tie = verdict_parts(d)
+        head, rest, masked, tie = verdict_parts(d)
         out["diagnosis"] = {"version": snapshot.diagnosed_version, "verdict": d.verdict, "head": head, "rest": rest,
-                            "tie": tie, "noise": d.noise.describe(), "seconds": d.seconds,
+                            "masked": masked, "tie": tie, "noise": d.noise.describe(), "seconds": d.seconds,
                             "candidates": [{k: r[k] for k in ("rank", "effect", "title", "score_text", "parameters",
                                                               "evidence", "verdict")} for r in diagnosis_rows(d)]}
     return out

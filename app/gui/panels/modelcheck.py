@@ -33,6 +33,7 @@ from app.core.diagnose import MATERIAL_CHI2_PER_COMPONENT, MATERIAL_FRACTION, NE
 from app.core.effects import EFFECT_IDS, INFO
 from app.core.effects.compressibility import NU_NEGLIGIBLE
 from app.core.effects.inclusion import NEGLIGIBLE_RATIO as INCLUSION_RATIO
+from app.core.export import verdict_html
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
                                  diagnosis_rows, frame_label, frame_outlines, history_rows, label_place,
@@ -908,9 +909,7 @@ class ModelCheckPanel(Panel):
             self.noise_label.setText("")
             self.diagnosis_current.setText("")
             return
-        head, rest, tie = verdict_parts(d)
-        tie = f"<br><span style='color:#b26a00'>\u26a0 Near tie: {html.escape(tie)}.</span>" if tie else ""
-        self.verdict_label.setText(f"<b>{html.escape(head)}</b>{html.escape(rest)}{tie}")
+        self.verdict_label.setText(verdict_html(verdict_parts(d), "color:#b26a00"))
         b = d.baseline
         self.diagnosis_current.setText(
             f"Diagnosed version {snap.diagnosed_version} ({', '.join(b.effects) or 'baseline'}) in {d.seconds:.0f} s. "
