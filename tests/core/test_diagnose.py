@@ -386,6 +386,75 @@ def test_a_near_tie_of_two_effects_is_settled_by_fitting_them_together():
         assert tb.winner == "" and choose_verdict([comp, slip], tb) == "compressibility"
 
 
+def test_when_the_two_best_of_a_near_tie_each_yield_the_third_is_fitted_with_the_best(monkeypatch):
+    """Blind paper-size seed 22103 (probe slip hidden; bench/paper_effects.py
+    --cases slip --seed-offset 22000): compressibility +1,438 (pattern 94.8%), a
+    soft sphere under the probe +1,392 (94.1%) and probe-slip +1,324 (96.8%).
+    Compressibility and the sphere, fitted together, each yielded to the other,
+    and the pattern match gave compressibility: probe-slip's match fell just short
+    of SIGNATURE_MARGIN above it. The third finding is now fitted with the best
+    one; there compressibility yields to the slip, so it is out, and between the
+    sphere and the slip the pattern match gives probe-slip. When that second
+    pair does not tell either, the first pair's fit stands."""
+    from types import SimpleNamespace
+
+    import app.core.diagnose as dg
+    from app.core.diagnose import Candidate, Diagnosis, NoiseModel, TieBreak, choose_verdict
+
+    def cand(effect, score, sig, **kw):
+        return Candidate(effect, (effect,), {}, {}, {"chi2": 3270.0 - score}, 1, score, "", material=True,
+                         signature=sig, **kw)
+
+    problem = SimpleNamespace(effects=())
+    comp, slip = cand("compressibility", 1437.9, 0.948), cand("probe-slip", 1323.5, 0.968)
+    incl = cand("inclusion", 1391.7, 0.941, problem=problem, inclusion={"name": "I", "center_mm": [43.1, 45.0, 89.1],
+                                                                       "radius_mm": 6.4})
+    ranked = [comp, incl, slip]
+    mutual = {"compressibility": "Poisson's ratio comes out at 0.478 with inclusion, within 0.02 of the model's "
+                                 "0.49 (no finding)",
+              "inclusion": "inclusion lowers chi2 by 23 on top of compressibility, less than its parameters cost (30)"}
+    slip_wins = {"compressibility": "Poisson's ratio comes out at 0.486 with probe-slip, within 0.02 of the model's "
+                                    "0.49 (no finding)", "probe-slip": ""}
+    fitted = []
+
+    def fit_pair(a, b, *args):
+        fitted.append((a.effect, b.effect))
+        joint = Candidate(f"{a.effect}+{b.effect}", (), {}, {}, {"chi2": 1800.0}, 2)
+        return TieBreak((a.effect, b.effect), joint, mutual if b.effect == "inclusion" else outcome[0])
+
+    monkeypatch.setattr(dg, "_fit_pair", fit_pair)
+    outcome = [slip_wins]
+    assert choose_verdict(ranked, TieBreak(("compressibility", "inclusion"), None, mutual)) == "compressibility"
+    tb = dg._tie_break(ranked, problem, None, None, 200, lambda s: None, None)
+    assert fitted == [("compressibility", "inclusion"), ("compressibility", "probe-slip")]
+    assert tb.effects == ("compressibility", "probe-slip") and tb.winner == "probe-slip"
+    assert tb.before.effects == ("compressibility", "inclusion") and tb.before.yields == mutual
+    d = Diagnosis("x", Candidate("", (), {}, {}, {"chi2": 3270.0}), ranked, choose_verdict(ranked, tb),
+                  NoiseModel(0.02, 1481, 0.117, 242), 1.0, tie_break=tb)
+    assert d.verdict == "probe-slip" and d.rival == "inclusion"
+    advice = d.tie_advice()
+    assert advice.startswith("inclusion scores slightly better (+1,392 against +1,324); compressibility and "
+                             "inclusion, fitted together first, each yield to the other; compressibility (+1,438) "
+                             "yields to probe-slip: fitted together, Poisson's ratio comes out at 0.486"), advice
+    assert "the verdict goes to probe-slip, whose pattern the misfit has more closely (97% against 94%)" in advice
+    js = d.to_json_dict()["tie_break"]
+    assert js["verdict"] == "probe-slip" and js["before"]["effects"] == ["compressibility", "inclusion"]
+    assert js["before"]["verdict"] is None and js["before"]["before"] is None
+    # the second pair does not tell either (each yields, or neither): the first pair's fit stands
+    for ys in ({"compressibility": "a", "probe-slip": "b"}, {"compressibility": "", "probe-slip": ""}):
+        outcome[0], fitted[:] = ys, []
+        tb = dg._tie_break(ranked, problem, None, None, 200, lambda s: None, None)
+        assert len(fitted) == 2 and tb.effects == ("compressibility", "inclusion") and tb.before is None
+        assert choose_verdict(ranked, tb) == "compressibility"
+    # two findings only, or a first pair with a winner: one joint fit
+    fitted[:] = []
+    assert dg._tie_break([comp, incl], problem, None, None, 200, lambda s: None, None).before is None
+    assert fitted == [("compressibility", "inclusion")]
+    outcome[0], fitted[:] = slip_wins, []
+    assert dg._tie_break([comp, slip, incl], problem, None, None, 200, lambda s: None, None).winner == "probe-slip"
+    assert fitted == [("compressibility", "probe-slip")]
+
+
 def test_an_inclusion_that_vanishes_when_fitted_with_the_other_effect_yields():
     """Paper size, sliding-bottom hidden (seed 2102, bench/paper_effects.py
     --seed-offset 2000): a stiff sphere located under the probe (2.6 times its
