@@ -286,16 +286,21 @@ def scoring_reference(base: "Candidate", cand: "Candidate") -> dict:
     return r if r is not None and r["chi2"] < base.misfit["chi2"] else base.misfit
 
 
-def _alone_text(c: "Candidate | None", than: str = "") -> str:
+def _alone_text(c: "Candidate | None", than: str = "", verdict: "Candidate | None" = None) -> str:
     """What a masked pair's boundary effect does alone (``than``: what it is compared
     with, e.g. "version 0"), with its score: it fits no better (score at most 0),
     or it fits better but is no finding (on 21012 the slip scored +426 yet removed
-    only 25% of the error beyond the noise)."""
+    only 25% of the error beyond the noise), or it is a finding that the
+    ``verdict`` outscored (blind seed 22202, a sliding bottom and a slipping probe:
+    sliding-bottom +701 under a stiff stand-in sphere's +1,935)."""
     than = f" than {than}" if than else ""
     if c is None or not math.isfinite(c.score):
         return f"does not fit better{than}"
     if c.score <= 0:
         return f"does not fit better{than} (score {c.score:+,.0f})"
+    if c.material and verdict is not None and verdict is not c:
+        return (f"fits better{than} (score {c.score:+,.0f}, a finding too, but below the {verdict.effect}'s "
+                f"{verdict.score:+,.0f})")
     return f"fits better{than} but is no finding (score {c.score:+,.0f})"
 
 
@@ -687,7 +692,8 @@ class Diagnosis:
 
         c = next((x for x in self.candidates if x.effect == m["effect"]), None)
         kind = "stiffer" if m["stiffer"] else "softer"
-        where = (f"alone, {m['effect']} {_alone_text(c)}, yet with it in the model the misfit points to a "
+        v = next((x for x in self.candidates if x.effect == self.verdict), None)
+        where = (f"alone, {m['effect']} {_alone_text(c, verdict=v)}, yet with it in the model the misfit points to a "
                  f"{kind} region at {place_text(m['inclusion'])}")
         estimate = f"(the scan's estimate: chi2 {m['estimated_chi2']:,.0f} against {m['best_single_chi2']:,.0f})"
         if self.verdict == "inclusion":

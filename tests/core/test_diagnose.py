@@ -803,6 +803,16 @@ def test_a_boundary_effect_that_hides_an_inclusion_is_named_with_a_none_verdict(
         d12.masked_text(), d12.masked_text()
     assert support_warning(d12, slip12, 0).startswith("probe-slip alone fits better than version 0 but is no finding "
                                                       "(score +426), as the diagnosis expected")
+    # blind seed 22202 (a sliding bottom and a slipping probe, no sphere): sliding-bottom was a finding
+    # alone (+701) but below a stiff stand-in sphere under the probe (+1,935), the verdict
+    slide = Candidate("sliding-bottom", ("sliding-bottom",), {"E_B_kPa": 17.4, "E_A_kPa": 75.6}, {}, mis(1911.8), 1,
+                      701.4, "slides", material=True)
+    incl22 = Candidate("inclusion", ("inclusion",), {}, {}, mis(1911.8), 4, 1935.4, "a stiffer region", material=True)
+    m22 = {"effect": "sliding-bottom", "inclusion": {"name": "I", "center_mm": [39.5, 45.0, 88.8], "radius_mm": 6.4},
+           "stiffer": False, "estimated_chi2": 1758.1, "best_single_chi2": 1911.8}
+    d22 = Diagnosis("x", base, [incl22, slide], "inclusion", noise, 1.0, masked=m22)
+    assert ("alone, sliding-bottom fits better (score +701, a finding too, but below the inclusion's +1,935), yet "
+            "with it in the model the misfit points to a softer region") in d22.masked_text(), d22.masked_text()
     from app.core.export import verdict_html
     from app.gui.models.modelcheck import verdict_parts
 
