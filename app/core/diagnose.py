@@ -299,8 +299,9 @@ def _alone_text(c: "Candidate | None", than: str = "", verdict: "Candidate | Non
     if c.score <= 0:
         return f"does not fit better{than} (score {c.score:+,.0f})"
     if c.material and verdict is not None and verdict is not c:
-        return (f"fits better{than} (score {c.score:+,.0f}, a finding too, but below the {verdict.effect}'s "
-                f"{verdict.score:+,.0f})")
+        lost = (f"below the {verdict.effect}'s {verdict.score:+,.0f}" if c.score < verdict.score else
+                f"the {verdict.effect} ({verdict.score:+,.0f}) won the near tie")
+        return f"fits better{than} (score {c.score:+,.0f}, a finding too, but {lost})"
     return f"fits better{than} but is no finding (score {c.score:+,.0f})"
 
 

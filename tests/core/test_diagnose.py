@@ -813,6 +813,9 @@ def test_a_boundary_effect_that_hides_an_inclusion_is_named_with_a_none_verdict(
     d22 = Diagnosis("x", base, [incl22, slide], "inclusion", noise, 1.0, masked=m22)
     assert ("alone, sliding-bottom fits better (score +701, a finding too, but below the inclusion's +1,935), yet "
             "with it in the model the misfit points to a softer region") in d22.masked_text(), d22.masked_text()
+    # a finding that scored higher but lost the near tie (the pattern match or the joint fit)
+    slide.score = 2000.0
+    assert "(score +2,000, a finding too, but the inclusion (+1,935) won the near tie)" in d22.masked_text()
     from app.core.export import verdict_html
     from app.gui.models.modelcheck import verdict_parts
 
