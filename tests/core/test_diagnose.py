@@ -455,6 +455,47 @@ def test_when_the_two_best_of_a_near_tie_each_yield_the_third_is_fitted_with_the
     assert fitted == [("compressibility", "probe-slip")]
 
 
+def test_a_hyperelastic_candidate_keeps_the_correction_of_its_best_start(monkeypatch):
+    """A hyperelastic model evaluates with the nonlinear correction its last fit
+    computed. With several starts (compressibility 2, viscoelastic 6) the best
+    start's correction is put back, not the last start's: with the last one's,
+    blind seed 22205 (a neo-Hookean truth with Poisson's ratio 0.45) scored
+    compressibility, fitted at nu 0.449 with the true moduli, with a force misfit
+    of 0.063 N against the noise's 0.02."""
+    import app.core.diagnose as dg
+    from app.core.effects.model import FitResult
+
+    class Problem:
+        effects = ("hyperelastic", "compressibility")
+        state = None
+        restored = []
+
+        def hyperelastic_state(self):
+            return self.state
+
+        def restore_hyperelastic(self, state):
+            self.restored.append(state)
+            self.state = state
+
+    cp = Problem()
+
+    def fit_ml(problem, lik, start, *args):
+        problem.state = f"correction at nu {start['nu']}"  # each fit refreshes the correction at its optimum
+        return FitResult(dict(start), {}, {0.45: 1.0, 0.35: 5.0}[start["nu"]], 10, 0.0)
+
+    monkeypatch.setattr(dg, "_fit_ml", fit_ml)
+    res = dg._fit_polished(cp, None, [{"nu": 0.45}, {"nu": 0.35}], None, 300, lambda s: None, "compressibility")
+    assert res.parameters == {"nu": 0.45} and cp.state == "correction at nu 0.45"
+    assert cp.restored == ["correction at nu 0.45"]
+    # one start, or a linear model: nothing to put back
+    cp.restored.clear()
+    dg._fit_polished(cp, None, [{"nu": 0.35}], None, 300, lambda s: None, "compressibility")
+    assert cp.restored == [] and cp.state == "correction at nu 0.35"
+    Problem.effects = ("compressibility",)
+    dg._fit_polished(cp, None, [{"nu": 0.45}, {"nu": 0.35}], None, 300, lambda s: None, "compressibility")
+    assert cp.restored == []
+
+
 def test_an_inclusion_that_vanishes_when_fitted_with_the_other_effect_yields():
     """Paper size, sliding-bottom hidden (seed 2102, bench/paper_effects.py
     --seed-offset 2000): a stiff sphere located under the probe (2.6 times its
