@@ -1478,9 +1478,9 @@ def _masked_pair(ranked, base: Candidate, guess, tracked, noise, ln_n: float, sa
     if not effect:
         return None, screen
     g = guesses[effect]
+    named = next(x for x in screen if x["effect"] == effect)
     return {"effect": effect, "inclusion": {"name": g.name, **g.as_parameters()}, "stiffer": bool(g.stiffer),
-            "estimated_chi2": round(scans[effect][0] - scans[effect][1], 1),
-            "best_single_chi2": round(best_single, 1)}, screen
+            "estimated_chi2": named["estimated_chi2"], "best_single_chi2": round(best_single, 1)}, screen
 
 
 def _memory_note(prep: _InclusionPrep | None, n_lean: int) -> str:
