@@ -82,6 +82,31 @@ CASES.update({
     # in view, 14 mm deep, beside A (centres 19 mm apart, radii 10 and 6), 3.75 times stiffer than B
     "wide-incl": (33, [*WIDE, "--hidden", "sphere:34,35,66,6,30"], "inclusion"),
 })
+# the paper's phantom with what the first sweeps kept fixed varied: the force noise,
+# region A softer than B, the probe face, the travel, the image size, weaker effects
+# (run blind with --seed-offset 22000, seeds 23001-23016; docs/model-check.md
+# "Blind variants of the setup")
+CASES.update({
+    "lownoise-none": (1001, ["--noise-N", "0.005"], "none"),
+    "softA-none": (1002, ["--moduli", "B=18,A=6"], "none"),
+    "face-slip": (1003, ["--face-mm", "30,14", "--effects", "probe-slip"], "probe-slip"),
+    "noisy-visco": (1004, ["--noise-N", "0.05", "--effects", "viscoelastic", "--hold-s", "10", "--g1", "0.15",
+                           "--tau1-s", "5"], "viscoelastic"),
+    "nu45": (1005, ["--nu", "0.45"], "compressibility"),
+    "slide-10": (1006, ["--effects", "sliding-bottom", "--depth-mm", "10", "--frames-at", "0,5,10"],
+                 "sliding-bottom"),
+    "soft-sphere": (1007, ["--hidden", "sphere:60,45,84,6,6"], "inclusion"),  # 3 times softer than B, in view
+    "bigimg-none": (1008, ["--rows", "400", "--cols", "300"], "none"),
+    "lownoise-hyper": (1009, ["--noise-N", "0.005", "--effects", "hyperelastic"], "hyperelastic"),
+    "face-none": (1010, ["--face-mm", "30,14"], "none"),
+    "face-none-11": (1011, ["--face-mm", "30,14"], "none"),
+    "face-slip-12": (1012, ["--face-mm", "30,14", "--effects", "probe-slip"], "probe-slip"),
+    "square-none": (1013, ["--face-mm", "20,20", "--depth-mm", "10", "--frames-at", "0,5,10"], "none"),
+    "square-slip": (1014, ["--face-mm", "20,20", "--depth-mm", "10", "--frames-at", "0,5,10", "--effects",
+                           "probe-slip"], "probe-slip"),
+    "deep-none": (1015, ["--depth-mm", "20", "--frames-at", "0,10,20"], "none"),
+    "softA-slip": (1016, ["--moduli", "B=18,A=6", "--effects", "probe-slip"], "probe-slip"),
+})
 HOLD_FPS = {"visco-video": 5.0}  # cases whose hold is recorded at this rate
 
 

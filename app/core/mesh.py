@@ -567,20 +567,32 @@ def _orient_and_clean(V: np.ndarray, T: np.ndarray):
     return V[used], remap[T]
 
 
+# the largest automatic element size on the probe face, mm. The strain beside the
+# face's edges grows with the travel, not with the face: a face wider than the
+# paper's 10 mm got larger elements (a fifth of its short side) and a larger
+# model error. Paper-size phantom with a 30 x 14 mm face, nothing hidden (seed
+# 23010), the model at the true moduli against the truth's frames (a finer
+# mesh): error beyond the noise 0.577 px and force 0.110 N RMS with 2.5 mm on
+# the face, 0.309 and 0.333 px with 2.4 and 2.25 mm, 0.190 px and 0.033 N with
+# 2.0 mm (the paper's face: 0.174 px with 2.0 mm). With 2.5 mm its diagnosis named
+# probe-slip, and with a slip hidden (seed 23003) compressibility.
+PROBE_EDGE_MAX_MM = 2.0
+
+
 def auto_settings(size_mm, probe_rect_mm, regions: tuple[Region, ...]) -> MeshSettings:
     """Edge lengths that resolve the specimen's features: at most 10 mm, an eighth of
     the smallest box side, and a third of the thinnest region, but no less than a
     tenth of the smallest side (a small region is resolved by the local
     refinement around it, not by refining the whole specimen: a 3 mm sphere
     otherwise made a million unknowns); a fifth of the probe face's short side
-    (at most 2.5 mm) on the probe; inside and around each region a fifth of its
-    thinnest extent (see :func:`region_edge_mm`)."""
+    (at most PROBE_EDGE_MAX_MM) on the probe; inside and around each region a
+    fifth of its thinnest extent (see :func:`region_edge_mm`)."""
     edge = min(10.0, min(size_mm) / 8.0)
     for r in regions[1:]:
         lo, hi = r.bounds_mm()
         edge = min(edge, max(float(np.min(hi - lo)) / 3.0, min(size_mm) / 10.0))
     x0, x1, y0, y1 = probe_rect_mm
-    probe = min(2.5, min(x1 - x0, y1 - y0) / 5.0, edge)
+    probe = min(PROBE_EDGE_MAX_MM, min(x1 - x0, y1 - y0) / 5.0, edge)
     return MeshSettings(edge_mm=round(edge, 3), probe_edge_mm=round(probe, 3))
 
 
