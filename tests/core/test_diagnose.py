@@ -545,6 +545,46 @@ def test_an_inclusion_that_vanishes_when_fitted_with_the_other_effect_yields():
     assert yields(inc, alone, still, lnN, 0.49, replaced) == ""
 
 
+def test_a_located_inclusion_does_not_win_a_near_tie_by_its_pattern():
+    """Blind seed 23012 (paper size, a 30 x 14 mm probe face slipping, nothing
+    else hidden): probe-slip +1,012 with the pattern at 90% and a soft stand-in
+    sphere under the probe +989 at 95% each yielded to the other, and the pattern
+    match gave the inclusion. The sphere is placed where the misfit is, so its
+    pattern follows the misfit by construction: it no longer wins by it. The
+    pattern still takes a verdict from the inclusion (the paper-size
+    sliding-bottom case), and an inclusion that scores best keeps it."""
+    from dataclasses import replace
+
+    from app.core.diagnose import Candidate, Diagnosis, NoiseModel, TieBreak, choose_verdict, wins_by_pattern
+
+    place = {"name": "I", "center_mm": [46.7, 45.0, 88.8], "radius_mm": 6.4}
+    slip = Candidate("probe-slip", ("probe-slip",), {"E_B_kPa": 17.78, "E_A_kPa": 64.13}, {}, {"chi2": 2083.5}, 1,
+                     1012.4, "", material=True, signature=0.896)
+    inc = Candidate("inclusion", ("inclusion",), {"E_B_kPa": 18.05, "E_A_kPa": 60.81, "E_I_kPa": 11.90}, {},
+                    {"chi2": 1829.7}, 4, 989.1, "", place, material=True, signature=0.946)
+    joint = Candidate("probe-slip+inclusion", ("probe-slip", "inclusion"),
+                      {"E_B_kPa": 17.98, "E_A_kPa": 61.82, "E_I_kPa": 16.41}, {}, {"chi2": 1828.5}, 5, inclusion=place)
+    tb = TieBreak(("probe-slip", "inclusion"), joint,
+                  {"probe-slip": "probe-slip lowers chi2 by 1 on top of inclusion, less than its parameters cost (7)",
+                   "inclusion": "with probe-slip, an inclusion 0.91 times as stiff as the tissue it replaces (B: 16.4 "
+                                "against 18.0 kPa) is no finding"})
+    assert tb.winner == "" and not wins_by_pattern(inc, slip)
+    assert choose_verdict([slip, inc], tb) == "probe-slip"
+    base = Candidate("", (), {}, {}, {"chi2": 3103.4, "force_rms_N": 0.02, "displacement_rms_px": 0.67})
+    d = Diagnosis("x", base, [slip, inc], choose_verdict([slip, inc], tb), NoiseModel(0.0201, 1481, 0.17, 238), 1.0,
+                  tie_break=tb)
+    assert d.rival == "inclusion"
+    assert ("the inclusion's closer pattern (95% against 90%) does not decide, as it was placed where the misfit is"
+            in d.tie_advice()), d.tie_advice()
+    # another effect still wins by its pattern, over the inclusion or not
+    slide = replace(slip, effect="sliding-bottom", effects=("sliding-bottom",), score=950.0, signature=0.97)
+    assert wins_by_pattern(slide, inc) and choose_verdict([inc, slide]) == "sliding-bottom"
+    assert choose_verdict([slip, slide]) == "sliding-bottom"
+    # an inclusion that scores best keeps the verdict
+    first = replace(inc, score=1100.0)
+    assert choose_verdict([first, slip], tb) == "inclusion"
+
+
 def test_a_located_inclusion_close_to_its_surroundings_modulus_is_no_finding():
     """On data with nothing hidden the located sphere changes the modulus of the
     tissue it replaces by a factor 1.06-1.43 where it could matter (14 diagnoses,
