@@ -798,7 +798,8 @@ class Diagnosis:
         if c.score > v.score and (tb is None or tb.loser != r):
             why += (f"; the verdict goes to {v.effect}, whose pattern the misfit has more closely "
                    f"({max(v.signature or 0, 0):.0%} against {max(c.signature or 0, 0):.0%})")
-        elif r == "inclusion" and (c.signature or 0.0) > (v.signature or 0.0) + SIGNATURE_MARGIN:
+        elif (r == "inclusion" and (tb is None or tb.loser != r)
+              and (c.signature or 0.0) > (v.signature or 0.0) + SIGNATURE_MARGIN):  # see wins_by_pattern
             why += (f"; the inclusion's closer pattern ({max(c.signature or 0, 0):.0%} against "
                     f"{max(v.signature or 0, 0):.0%}) does not decide, as it was placed where the misfit is")
         return (f"{r} scores {how} ({c.score:+,.0f} against {v.score:+,.0f}){why}: these measurements barely "

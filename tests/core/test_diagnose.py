@@ -576,6 +576,10 @@ def test_a_located_inclusion_does_not_win_a_near_tie_by_its_pattern():
     assert d.rival == "inclusion"
     assert ("the inclusion's closer pattern (95% against 90%) does not decide, as it was placed where the misfit is"
             in d.tie_advice()), d.tie_advice()
+    # when the joint fit put the inclusion out, the fit decided, not the rule on its pattern
+    out = TieBreak(tb.effects, joint, {"probe-slip": "", "inclusion": tb.yields["inclusion"]})
+    d.tie_break = out
+    assert out.loser == "inclusion" and "does not decide" not in d.tie_advice(), d.tie_advice()
     # another effect still wins by its pattern, over the inclusion or not
     slide = replace(slip, effect="sliding-bottom", effects=("sliding-bottom",), score=950.0, signature=0.97)
     assert wins_by_pattern(slide, inc) and choose_verdict([inc, slide]) == "sliding-bottom"
