@@ -84,7 +84,7 @@ CASES.update({
 })
 # the paper's phantom with what the first sweeps kept fixed varied: the force noise,
 # region A softer than B, the probe face, the travel, the image size, weaker effects
-# (run blind with --seed-offset 22000, seeds 23001-23016; docs/model-check.md
+# (run blind with --seed-offset 22000, seeds 23001-23024; docs/model-check.md
 # "Blind variants of the setup")
 CASES.update({
     "lownoise-none": (1001, ["--noise-N", "0.005"], "none"),
@@ -106,6 +106,16 @@ CASES.update({
                            "probe-slip"], "probe-slip"),
     "deep-none": (1015, ["--depth-mm", "20", "--frames-at", "0,10,20"], "none"),
     "softA-slip": (1016, ["--moduli", "B=18,A=6", "--effects", "probe-slip"], "probe-slip"),
+    "face-visco": (1017, ["--face-mm", "30,14", "--effects", "viscoelastic", "--hold-s", "6", "--g1", "0.3",
+                          "--tau1-s", "2"], "viscoelastic"),
+    "face-slide": (1018, ["--face-mm", "30,14", "--effects", "sliding-bottom"], "sliding-bottom"),
+    "face-nu": (1019, ["--face-mm", "30,14", "--nu", "0.4"], "compressibility"),
+    "square-nu": (1020, ["--face-mm", "20,20", "--depth-mm", "10", "--frames-at", "0,5,10", "--nu", "0.45"],
+                  "compressibility"),
+    "noisy-none": (1021, ["--noise-N", "0.05"], "none"),
+    "deep-slip": (1022, ["--depth-mm", "20", "--frames-at", "0,10,20", "--effects", "probe-slip"], "probe-slip"),
+    "softA-slide": (1023, ["--moduli", "B=18,A=6", "--effects", "sliding-bottom"], "sliding-bottom"),
+    "lownoise-slip": (1024, ["--noise-N", "0.005", "--effects", "probe-slip"], "probe-slip"),
 })
 HOLD_FPS = {"visco-video": 5.0}  # cases whose hold is recorded at this rate
 
