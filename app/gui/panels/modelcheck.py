@@ -364,7 +364,8 @@ class ModelCheckPanel(Panel):
                            f"{INCLUSION_RATIO:g} times stiffer or softer than its tissue), else none. Among those "
                            f"scoring at least {NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still "
                            "needed when the two best are fitted together, else the one whose pattern the misfit has "
-                           "most closely."))
+                           "most closely (a located inclusion, placed where the misfit is, does not win by its "
+                           "pattern over a better score)."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
