@@ -84,7 +84,7 @@ CASES.update({
 })
 # the paper's phantom with what the first sweeps kept fixed varied: the force noise,
 # region A softer than B, the probe face, the travel, the image size, weaker effects
-# (run blind with --seed-offset 22000, seeds 23001-23024; docs/model-check.md
+# (run blind with --seed-offset 22000, seeds 23001-23030; docs/model-check.md
 # "Blind variants of the setup")
 CASES.update({
     "lownoise-none": (1001, ["--noise-N", "0.005"], "none"),
@@ -116,6 +116,12 @@ CASES.update({
     "deep-slip": (1022, ["--depth-mm", "20", "--frames-at", "0,10,20", "--effects", "probe-slip"], "probe-slip"),
     "softA-slide": (1023, ["--moduli", "B=18,A=6", "--effects", "sliding-bottom"], "sliding-bottom"),
     "lownoise-slip": (1024, ["--noise-N", "0.005", "--effects", "probe-slip"], "probe-slip"),
+    "boxed-square-none": (1025, [*BOXED, "--face-mm", "20,20"], "none"),
+    "wide-face-slip": (1026, [*WIDE, "--face-mm", "30,14", "--effects", "probe-slip"], "probe-slip"),
+    "small-noisy-nu": (1027, [*SMALL, "--noise-N", "0.05", "--nu", "0.4"], "compressibility"),
+    "lowres-none": (1028, ["--rows", "128", "--cols", "100"], "none"),
+    "lowres-slide": (1029, ["--rows", "128", "--cols", "100", "--effects", "sliding-bottom"], "sliding-bottom"),
+    "shallow-slip": (1030, ["--depth-mm", "5", "--frames-at", "0,2.5,5", "--effects", "probe-slip"], "probe-slip"),
 })
 HOLD_FPS = {"visco-video": 5.0}  # cases whose hold is recorded at this rate
 
