@@ -84,7 +84,7 @@ CASES.update({
 })
 # the paper's phantom with what the first sweeps kept fixed varied: the force noise,
 # region A softer than B, the probe face, the travel, the image size, weaker effects
-# (run blind with --seed-offset 22000, seeds 23001-23030; docs/model-check.md
+# (run blind with --seed-offset 22000, seeds 23001-23036; docs/model-check.md
 # "Blind variants of the setup")
 CASES.update({
     "lownoise-none": (1001, ["--noise-N", "0.005"], "none"),
@@ -122,6 +122,13 @@ CASES.update({
     "lowres-none": (1028, ["--rows", "128", "--cols", "100"], "none"),
     "lowres-slide": (1029, ["--rows", "128", "--cols", "100", "--effects", "sliding-bottom"], "sliding-bottom"),
     "shallow-slip": (1030, ["--depth-mm", "5", "--frames-at", "0,2.5,5", "--effects", "probe-slip"], "probe-slip"),
+    "homog-none": (1031, ["--inclusion", "none", "--moduli", "B=18"], "none"),
+    "homog-slide": (1032, ["--inclusion", "none", "--moduli", "B=18", "--effects", "sliding-bottom"], "sliding-bottom"),
+    "boxA-slip": (1033, ["--inclusion", "box:45,45,66,30,30,20", "--effects", "probe-slip"], "probe-slip"),
+    "stiff-none": (1034, ["--moduli", "B=60,A=200"], "none"),
+    "verysoft-nu": (1035, ["--moduli", "B=3,A=10", "--nu", "0.45"], "compressibility"),
+    "stiff-visco": (1036, ["--moduli", "B=60,A=200", "--effects", "viscoelastic", "--hold-s", "6", "--g1", "0.3",
+                           "--tau1-s", "2"], "viscoelastic"),
 })
 HOLD_FPS = {"visco-video": 5.0}  # cases whose hold is recorded at this rate
 
