@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 QUALITIES = (0.45, 0.5)
+BOUNDARY = ("sliding-bottom", "probe-slip")  # the truth's effects the identification mesh holds
 
 
 def median_rms(tracked, model_px, qmin: float = 0.0) -> tuple[float, int]:
@@ -65,21 +66,25 @@ def run(folder: Path) -> list[list[str]]:
     tracked = track(base, pb)
     unconfirmed = track(base, pb, confirm_weak=False)
     fits = [("baseline", base, pb)]
+    models = {(): base}
     if verdict != "none":
-        model = current_model(exp, effects=(verdict,), base=base)
+        models[(verdict,)] = current_model(exp, effects=(verdict,), base=base)
         cand = next(c for c in d["candidates"] if c["effect"] == verdict)
-        fits.append((verdict, model, model.complete(cand["parameters"])))
+        fits.append((verdict, models[(verdict,)], models[(verdict,)].complete(cand["parameters"])))
     # the truth: its own effects (not the verdict's, which may be wrong), at its moduli
     true = {f"E_{k}_kPa": float(v) for k, v in truth["moduli_kPa"].items()}
-    effects = [e for e in truth.get("effects", []) if e in ("sliding-bottom", "probe-slip")]
+    hidden = truth.get("effects", [])
+    effects = [e for e in hidden if e in BOUNDARY]
     if abs(float(truth["nu"]) - base.nu) > 1e-9:
         effects.append("compressibility")
         true["nu"] = float(truth["nu"])
-    if set(truth.get("effects", [])) - {"sliding-bottom", "probe-slip"} or truth.get("hidden_regions"):
+    if set(hidden) - set(BOUNDARY) or truth.get("hidden_regions"):
         fits.append(("truth (not on the identification mesh: skipped)", None, None))
     else:
-        model = current_model(exp, effects=tuple(effects), base=base) if effects else base
-        fits.append(("truth", model, model.complete(true)))
+        key = tuple(effects)
+        if key not in models:  # the verdict's model when the verdict is the truth's one effect
+            models[key] = current_model(exp, effects=key, base=base)
+        fits.append(("truth", models[key], models[key].complete(true)))
     rows = []
     for label, problem, params in fits:
         if problem is None:

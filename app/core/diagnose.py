@@ -630,8 +630,12 @@ def wins_by_pattern(c: "Candidate", best: "Candidate") -> bool:
     gave the inclusion. Among the 238 diagnoses saved from earlier sessions this
     rule changes no other verdict: the inclusion was the verdict below another
     finding's score only there and once through a joint fit."""
-    return (c.effect != "inclusion"
-            and (c.signature or 0.0) > (best.signature or 0.0) + SIGNATURE_MARGIN)
+    return c.effect != "inclusion" and closer_pattern(c, best)
+
+
+def closer_pattern(a: "Candidate", b: "Candidate") -> bool:
+    """Whether the misfit has ``a``'s pattern more closely than ``b``'s, by SIGNATURE_MARGIN."""
+    return (a.signature or 0.0) > (b.signature or 0.0) + SIGNATURE_MARGIN
 
 
 @dataclass
@@ -798,8 +802,7 @@ class Diagnosis:
         if c.score > v.score and (tb is None or tb.loser != r):
             why += (f"; the verdict goes to {v.effect}, whose pattern the misfit has more closely "
                    f"({max(v.signature or 0, 0):.0%} against {max(c.signature or 0, 0):.0%})")
-        elif (r == "inclusion" and (tb is None or tb.loser != r)
-              and (c.signature or 0.0) > (v.signature or 0.0) + SIGNATURE_MARGIN):  # see wins_by_pattern
+        elif r == "inclusion" and (tb is None or tb.loser != r) and closer_pattern(c, v):  # see wins_by_pattern
             why += (f"; the inclusion's closer pattern ({max(c.signature or 0, 0):.0%} against "
                     f"{max(v.signature or 0, 0):.0%}) does not decide, as it was placed where the misfit is")
         return (f"{r} scores {how} ({c.score:+,.0f} against {v.score:+,.0f}){why}: these measurements barely "
