@@ -616,6 +616,18 @@ def test_a_verdict_of_none_names_an_effect_that_came_close(window, qtbot):
     assert "removes 29%" in text and "<br><br><b>Or</b> probe-slip and an undescribed inclusion hide each other" in text
     data = report_data(snap)["diagnosis"]
     assert data["masked"].startswith("Or probe-slip") and "hide each other" not in data["rest"]
+    # blind seed 23029 (a sliding bottom seen through a small image): the moduli rest on the bottom being bonded
+    b29 = Candidate("", (), {"E_B_kPa": 17.306, "E_A_kPa": 49.737}, {}, {**mis(1488.88, 0.0), "force_excess_N": 0.0,
+                                                                        "force_floor_N": 0.0195})
+    slide = Candidate("sliding-bottom", ("sliding-bottom",), {"E_B_kPa": 17.783, "E_A_kPa": 65.106}, {},
+                      mis(1486.5, 0.0), 1, -5.0, "slides")
+    d29 = Diagnosis("x", b29, [slide], "none", NoiseModel(0.0195, 1481, 0.25, 18), 180.0)
+    snap29 = Snapshot(h, None, d29, 0, "diagnose", "diagnosis: verdict none")
+    panel._show(panel.model.apply((None, None, snap29)))
+    text = panel.verdict_label.text()
+    assert "The moduli rest on an assumption these measurements do not settle: with sliding-bottom" in text, text
+    assert "E_A would be 65.1 kPa (now 49.7)" in text and "specimen slides on the table" in text
+    assert "E_A would be 65.1 kPa" in report_data(snap29)["diagnosis"]["rest"]
 
 
 def test_the_diagnosis_says_when_memory_was_short(window, qtbot):

@@ -29,7 +29,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QGridLay
                                QHeaderView, QLabel, QPlainTextEdit, QPushButton, QSplitter,
                                QTableWidget, QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
-from app.core.diagnose import MATERIAL_CHI2_PER_COMPONENT, MATERIAL_FRACTION, NEAR_TIE
+from app.core.diagnose import MATERIAL_CHI2_PER_COMPONENT, MATERIAL_FRACTION, NEAR_TIE, UNRESOLVED_SHIFT
 from app.core.effects import EFFECT_IDS, INFO
 from app.core.effects.compressibility import NU_NEGLIGIBLE
 from app.core.effects.inclusion import NEGLIGIBLE_RATIO as INCLUSION_RATIO
@@ -365,7 +365,9 @@ class ModelCheckPanel(Panel):
                            f"scoring at least {NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still "
                            "needed when the two best are fitted together, else the one whose pattern the misfit has "
                            "most closely (a located inclusion, placed where the misfit is, does not win by its "
-                           "pattern over a better score)."))
+                           "pattern over a better score). A verdict of none names any other effect that fits as "
+                           f"well and would move a modulus by more than {UNRESOLVED_SHIFT:.0%}: the moduli then "
+                           "rest on the setup ruling it out."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
