@@ -727,7 +727,7 @@ class Diagnosis:
         rows = [(c, m) for c, m in self.unresolved() if c.effect != skip]
         if not rows:
             return ""
-        parts = [f"with {c.effect}, which fits them as well (score {c.score:+,.0f}, chi2 "
+        parts = [f"with {c.effect}, which fits them at least as well (score {c.score:+,.0f}, chi2 "
                  f"{c.misfit['chi2']:,.1f} against {scoring_reference(self.baseline, c)['chi2']:,.1f}), "
                  f"{moduli_text(m)}" for c, m in rows]
         setups = "; ".join(INFO[c.effect].title for c, _ in rows)

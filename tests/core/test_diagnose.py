@@ -832,7 +832,7 @@ def test_a_verdict_of_none_says_when_the_moduli_rest_on_an_effect_the_data_do_no
     text = d.none_text()
     assert text.startswith("No candidate effect lowers the misfit by more than its parameters cost"), text
     assert text.endswith(". The moduli rest on an assumption these measurements do not settle: with "
-                         "sliding-bottom, which fits them as well (score -5, chi2 1,486.5 against 1,488.9), E_A "
+                         "sliding-bottom, which fits them at least as well (score -5, chi2 1,486.5 against 1,488.9), E_A "
                          "would be 65.1 kPa (now 49.7). If the setup allows it (specimen slides on the table), "
                          "add it and compare the versions"), text
     assert d.to_json_dict()["unresolved"] == [{"effect": "sliding-bottom", "moduli_kPa": {"E_A_kPa": 65.11}}]
@@ -845,9 +845,9 @@ def test_a_verdict_of_none_says_when_the_moduli_rest_on_an_effect_the_data_do_no
     slip2 = Candidate("probe-slip", ("probe-slip",), {"E_B_kPa": 15.2, "E_A_kPa": 49.9}, {}, mis(1487.9), 1, -6.4,
                       "slips")
     two = Diagnosis("x", base, [slide, slip2], "none", NoiseModel(0.0195, 1481, 0.25, 18), 1.0).none_text()
-    assert ("assumptions these measurements do not settle: with sliding-bottom, which fits them as well (score -5, "
-            "chi2 1,486.5 against 1,488.9), E_A would be 65.1 kPa (now 49.7); with probe-slip, which fits them as "
-            "well (score -6, chi2 1,487.9 against 1,488.9), E_B would be 15.2 kPa (now 17.3). If the setup allows "
+    assert ("assumptions these measurements do not settle: with sliding-bottom, which fits them at least as well (score -5, "
+            "chi2 1,486.5 against 1,488.9), E_A would be 65.1 kPa (now 49.7); with probe-slip, which fits them at "
+            "least as well (score -6, chi2 1,487.9 against 1,488.9), E_B would be 15.2 kPa (now 17.3). If the setup allows "
             "one of them (specimen slides on the table; probe slides on the surface), add that effect") in two, two
     # moduli within 10%, or a verdict: nothing to say
     near = Candidate("sliding-bottom", ("sliding-bottom",), {"E_B_kPa": 17.9, "E_A_kPa": 54.0}, {}, mis(1486.5), 1,
