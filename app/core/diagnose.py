@@ -963,10 +963,11 @@ def moved_moduli(now: dict, other: dict, shift: float) -> list[tuple[str, float,
 
 def moduli_text(moved, lead: bool = True) -> str:
     """'E_A would be 65.0 kPa (now 49.8)', or without the lead 'A 65.0 kPa (now 49.8)'."""
-    items = [f"{name} {new:.1f} kPa (now {now:.1f})" for name, new, now in moved]
-    if not lead:
-        return ", ".join(items)
-    return "E_" + ", E_".join(items).replace(" ", " would be ", 1)
+    out = []
+    for i, (name, new, now) in enumerate(moved):
+        head = f"E_{name}{' would be' if i == 0 else ''}" if lead else name
+        out.append(f"{head} {new:.1f} kPa (now {now:.1f})")
+    return ", ".join(out)
 
 
 def _fit_ml(problem: EffectProblem, lik: Likelihood, start: dict, cancel, max_evaluations: int,
