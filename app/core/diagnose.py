@@ -324,6 +324,12 @@ def support_warning(d: "Diagnosis", c: "Candidate", parent: int) -> str:
         return (f"{c.effect} makes the model fit the measurements worse than version {parent} (chi2 "
                 f"{c.misfit['chi2']:,.0f} against {ref['chi2']:,.0f}): the data do not show it; revert to "
                 f"version {parent}")
+    moved = next((m for u, m in d.unresolved() if u.effect == c.effect), None)
+    if moved:  # the verdict none named it: the setup decides, not the data
+        to = ", ".join(f"E_{name} to {new:.1f} kPa (from {now:.1f})" for name, new, now in moved)
+        return (f"{c.effect} is no finding (score {c.score:+.1f}), but the measurements fit it at least as well as "
+                f"version {parent}, and it moves {to}: keep it if the setup allows it ({INFO[c.effect].title}); "
+                f"else revert to version {parent}")
     if c.score <= 0:
         return (f"{c.effect} lowers the misfit by less than its {n} parameter{'s' if n != 1 else ''} cost (score "
                 f"{c.score:+.1f}): the data do not show it, and version {parent} explains them as well; revert to "

@@ -855,6 +855,14 @@ def test_a_verdict_of_none_says_when_the_moduli_rest_on_an_effect_the_data_do_no
     assert Diagnosis("x", base, [near, nu], "none", NoiseModel(0.0195, 1481, 0.25, 18), 1.0).unresolved() == []
     found = Diagnosis("x", base, [slide, nu], "sliding-bottom", NoiseModel(0.0195, 1481, 0.25, 18), 1.0)
     assert found.unresolved() == [] and found.to_json_dict()["unresolved"] == []
+    # added as the sentence advises, the version's note leaves it to the setup instead of saying "revert"
+    from app.core.diagnose import support_warning
+
+    assert support_warning(d, slide, 0) == (
+        "sliding-bottom is no finding (score -5.0), but the measurements fit it at least as well as version 0, and "
+        "it moves E_A to 65.1 kPa (from 49.7): keep it if the setup allows it (specimen slides on the table); else "
+        "revert to version 0")
+    assert "the data do not show it" in support_warning(d, slip, 0)  # it fits worse
 
 
 def test_a_boundary_effect_that_hides_an_inclusion_is_named_with_a_none_verdict():
