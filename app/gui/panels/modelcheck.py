@@ -365,9 +365,9 @@ class ModelCheckPanel(Panel):
                            f"scoring at least {NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still "
                            "needed when the two best are fitted together, else the one whose pattern the misfit has "
                            "most closely (a located inclusion, placed where the misfit is, does not win by its "
-                           "pattern over a better score). A verdict of none names any other effect that fits as "
-                           f"well and would move a modulus by more than {UNRESOLVED_SHIFT:.0%}: the moduli then "
-                           "rest on the setup ruling it out."))
+                           "pattern over a better score). A verdict of none names any other effect that fits at "
+                           f"least as well and would move a modulus by more than {UNRESOLVED_SHIFT:.0%}: the moduli "
+                           "then rest on the setup ruling it out."))
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
