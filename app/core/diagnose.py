@@ -752,10 +752,8 @@ class Diagnosis:
         if not earning:
             return ("No candidate effect lowers the misfit by more than its parameters cost: the current model "
                     "explains the data as well as the noise allows" + self.unresolved_text() + masked)
-        # the effect whose moduli the reason has given: a lone near miss, or the best candidate within the floor
-        misses = self.near_misses()[:2]
-        shown = misses[0][0] if len(misses) == 1 else None if misses else self._floor_best(earning)
-        return self._none_text(earning) + self.unresolved_text(skip=shown.effect if shown else "") + masked
+        text, shown = self._none_text(earning)
+        return text + self.unresolved_text(skip=shown) + masked
 
     def masked_sentence(self) -> str:
         """The masked pair's sentence standing on its own: "But ..." after an
@@ -787,13 +785,16 @@ class Diagnosis:
                 f"would explain far more than any one effect {estimate}. Add {m['effect']} and diagnose again: if "
                 f"the inclusion is there, the next diagnosis names it")
 
-    def _none_text(self, earning: list[Candidate]) -> str:
+    def _none_text(self, earning: list[Candidate]) -> tuple[str, str]:
+        """Why no candidate that earns its parameters is a finding, and the effect
+        whose moduli that text gives ("" when none): a lone near miss, or the best
+        candidate within the noise floor."""
         text = ("No candidate is a finding: those that lower the misfit by more than their parameters cost remove "
                 f"less than {MATERIAL_FRACTION:.0%} of the error beyond the noise and lower the chi2 by less than "
                 f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement, or fit no physical change")
         misses = self.near_misses()[:2]
         if not misses:
-            return self._within_floor_text(earning) or text
+            return self._within_floor_text(earning) or (text, "")
         settle = (f"Frames recorded closer in strain (about 2% apart) are tracked more precisely and usually settle "
                   f"it; if the setup makes {'it' if len(misses) == 1 else 'one of them'} plausible "
                   f"({'; '.join(INFO[c.effect].title for c, _ in misses)}), add "
@@ -803,22 +804,30 @@ class Diagnosis:
             return (f"{text}. But {a.effect} (score {a.score:+,.0f}, {fa:.0%} removed) and {b.effect} (score "
                     f"{b.score:+,.0f}, {fb:.0%}) come close: each lowers the misfit by more than its parameters "
                     f"cost, short of removing the {MATERIAL_FRACTION:.0%} of the error beyond the noise a verdict "
-                    f"needs. {settle}")
+                    f"needs. {settle}"), ""
         c, share = misses[0]
         moved = moved_moduli(self.baseline.parameters, c.parameters, 0.05)
         with_it = f"; with it the moduli would be {moduli_text(moved, lead=False)}" if moved else ""
         return (f"{text}. But {c.effect} comes close: it lowers the misfit by more than its parameters cost "
                 f"(score {c.score:+,.0f}) and removes {share:.0%} of the error beyond the noise, short of the "
-                f"{MATERIAL_FRACTION:.0%} a verdict needs{with_it}. {settle}")
+                f"{MATERIAL_FRACTION:.0%} a verdict needs{with_it}. {settle}"), c.effect
 
-    def _within_floor_text(self, earning: list[Candidate]) -> str:
+    def _within_floor_text(self, earning: list[Candidate]) -> tuple[str, str] | None:
         """Why the verdict is none when the current model's error is already within
         MATERIAL_MIN of its noise floor in every channel: that, and the best
         candidate that earned its parameters with a physical change (the data
-        cannot tell it from the model's own mesh error); "" else."""
-        ratios, best = self._floor_ratios(), self._floor_best(earning)
-        if best is None:
-            return ""
+        cannot tell it from the model's own mesh error), with that candidate's
+        effect; None else."""
+        ratios = {}
+        for ch in ("displacement", "force"):
+            e0, floor = excess_and_floor(self.baseline.misfit, ch)
+            if e0 is None or not floor:
+                return None
+            ratios[ch] = e0 / floor
+        physical = [c for c in earning if not c.negligible]
+        if max(ratios.values()) >= MATERIAL_MIN or not physical:
+            return None
+        best = max(physical, key=lambda c: c.score)
         drop = max((g for g in chi2_drop_per_component(scoring_reference(self.baseline, best), best.misfit).values()
                     if g is not None), default=0.0)
         moved = moved_moduli(self.baseline.parameters, best.parameters, 0.05)
@@ -829,27 +838,7 @@ class Diagnosis:
                 f"effect. A finding must then lower the chi2 by {MATERIAL_CHI2_PER_COMPONENT:g} per measurement; the "
                 f"best candidate, {best.effect} (score {best.score:+,.0f}), lowers it by {max(drop, 0.0):.2f}"
                 f"{with_it}. These measurements cannot show a further effect; if the setup makes it plausible "
-                f"({INFO[best.effect].title}), add it and compare the versions")
-
-    def _floor_ratios(self) -> dict | None:
-        """The current model's error beyond the noise over its noise floor, per channel (None if unknown)."""
-        ratios = {}
-        for ch in ("displacement", "force"):
-            e0, floor = excess_and_floor(self.baseline.misfit, ch)
-            if e0 is None or not floor:
-                return None
-            ratios[ch] = e0 / floor
-        return ratios
-
-    def _floor_best(self, earning: list[Candidate]) -> Candidate | None:
-        """When the current model's error is within MATERIAL_MIN of its noise floor in
-        every channel, the best candidate that earned its parameters with a physical
-        change (the one :meth:`_within_floor_text` names); None else."""
-        ratios = self._floor_ratios()
-        physical = [c for c in earning if not c.negligible]
-        if ratios is None or max(ratios.values()) >= MATERIAL_MIN or not physical:
-            return None
-        return max(physical, key=lambda c: c.score)
+                f"({INFO[best.effect].title}), add it and compare the versions"), best.effect
 
     def tie_advice(self) -> str:
         """What to do about a near tie, in words ("" when there is none)."""
