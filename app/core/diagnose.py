@@ -305,6 +305,26 @@ def _alone_text(c: "Candidate | None", than: str = "", verdict: "Candidate | Non
     return f"fits better{than} but is no finding (score {c.score:+,.0f})"
 
 
+# the clauses that end a version's warning, and the short status each gives it in
+# the history (warning_status)
+SETUP_DECIDES = "keep it if the setup allows it"
+DIAGNOSE_AGAIN = "Diagnose again"
+
+
+def warning_status(warning: str) -> str:
+    """A version's warning in two or three words, for the history's table: a version
+    that adds an effect the data cannot settle is left to the setup, one the
+    diagnosis expected to be masked waits for the next diagnosis, any other is not
+    supported by the measurements ("" without a warning)."""
+    if not warning:
+        return ""
+    if SETUP_DECIDES in warning:
+        return "the setup decides"
+    if DIAGNOSE_AGAIN in warning:
+        return "diagnose again"
+    return "not supported"
+
+
 def support_warning(d: "Diagnosis", c: "Candidate", parent: int) -> str:
     """Why the measurements do not support adding candidate ``c`` of diagnosis ``d``
     to version ``parent``, in a sentence; "" when they do (the verdict always does).
@@ -318,7 +338,7 @@ def support_warning(d: "Diagnosis", c: "Candidate", parent: int) -> str:
     n = c.n_parameters
     if d.masked and d.masked.get("effect") == c.effect and (c.score <= 0 or not c.material):
         return (f"{c.effect} alone {_alone_text(c, f'version {parent}')}, as the diagnosis expected: it may hide "
-                f"an undescribed inclusion. Diagnose again; if the next diagnosis does not find the inclusion "
+                f"an undescribed inclusion. {DIAGNOSE_AGAIN}; if the next diagnosis does not find the inclusion "
                 f"either, revert to version {parent}")
     if c.misfit and c.misfit["chi2"] > ref["chi2"]:
         return (f"{c.effect} makes the model fit the measurements worse than version {parent} (chi2 "
@@ -328,7 +348,7 @@ def support_warning(d: "Diagnosis", c: "Candidate", parent: int) -> str:
     if moved:  # the verdict none named it: the setup decides, not the data
         to = ", ".join(f"E_{name} to {new:.1f} kPa (from {now:.1f})" for name, new, now in moved)
         return (f"{c.effect} is no finding (score {c.score:+.1f}), but the measurements fit it at least as well as "
-                f"version {parent}, and it moves {to}: keep it if the setup allows it ({INFO[c.effect].title}); "
+                f"version {parent}, and it moves {to}: {SETUP_DECIDES} ({INFO[c.effect].title}); "
                 f"else revert to version {parent}")
     if c.score <= 0:
         return (f"{c.effect} lowers the misfit by less than its {n} parameter{'s' if n != 1 else ''} cost (score "

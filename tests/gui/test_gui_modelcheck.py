@@ -198,6 +198,7 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     assert len(h) == 3 and h.current == 2 and h.versions[2].parent == 0 and h.versions[2].warning
     assert "\u26a0" in panel.version_label.text() and "revert to version 0" in panel.version_label.text()
     assert panel.history_table.item(2, 6).text().startswith("\u26a0")
+    assert panel.history_table.item(2, 6).text().endswith(": not supported")
     assert panel.history_table.item(2, 6).toolTip() == h.versions[2].warning
     assert "Warning: probe-slip" in panel.state.text()
     assert not win.error_boxes
@@ -541,6 +542,20 @@ def test_history_text_and_rows():
     assert g1_line.split() == ["g1", "0", "->", "0.3"], g1_line  # no percentage of a change from zero
     text = compare_text(h, 0, 1)
     assert "added: viscoelastic; removed: nothing" in text and "x0.1" in text and "+20.0%" in text
+    # a warning's status in the table: what to do, in two or three words
+    mis = {"force_rms_N": 0.03, "chi2": 90.0}
+    for warning, status in (("", ""),
+                            ("sliding-bottom is no finding (score -5.0), but the measurements fit it at least as well "
+                             "as version 0, and it moves E_A to 65.1 kPa (from 49.7): keep it if the setup allows it "
+                             "(specimen slides on the table); else revert to version 0", "the setup decides"),
+                            ("probe-slip alone fits worse than version 0, as the diagnosis expected: it may hide an "
+                             "undescribed inclusion. Diagnose again; if the next diagnosis does not find the "
+                             "inclusion either, revert to version 0", "diagnose again"),
+                            ("probe-slip lowers the misfit by less than its 1 parameter cost (score -13.9): the data "
+                             "do not show it, and version 0 explains them as well; revert to version 0",
+                             "not supported")):
+        row = history_rows(h.with_version(("sliding-bottom",), {"E_B_kPa": 12.0}, {}, mis, warning=warning))[-1]
+        assert (row["warning"], row["status"]) == (warning, status)
 
 
 def test_a_near_tie_is_shown_under_the_verdict(window, qtbot):

@@ -493,6 +493,8 @@ def report_maps(snapshot) -> list[dict]:
 
 
 def history_rows(history) -> list[dict]:
+    from app.core.diagnose import warning_status
+
     rows = []
     for v in history.versions:
         rows.append({"index": v.index, "label": v.label, "effects": ", ".join(v.effects) or "none",
@@ -500,7 +502,7 @@ def history_rows(history) -> list[dict]:
                      "force_rms_N": v.misfit.get("force_rms_N"),
                      "displacement_rms_px": v.misfit.get("displacement_rms_px"),
                      "chi2": v.misfit.get("chi2"), "note": v.note, "current": v.index == history.current,
-                     "parent": v.parent, "warning": v.warning})
+                     "parent": v.parent, "warning": v.warning, "status": warning_status(v.warning)})
     return rows
 
 

@@ -962,7 +962,7 @@ class ModelCheckPanel(Panel):
         self.history_table.setRowCount(len(rows))
         for i, r in enumerate(rows):
             mark = "\u25b6 " if r["current"] else ""
-            note = f"\u26a0 {r['note']}: not supported" if r["warning"] else r["note"]
+            note = f"\u26a0 {r['note']}: {r['status']}" if r["warning"] else r["note"]
             cells = [f"{mark}{r['index']}", r["label"], r["parameters"], _fmt(r["force_rms_N"], 4),
                      _fmt(r["displacement_rms_px"], 3), _fmt(r["chi2"], 1), note]
             for col, text in enumerate(cells):
