@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -172,12 +173,21 @@ def save_png(qimage, path: Path) -> None:
 
 
 def run(args) -> list[Path]:
-    from app.core.mesh import MeshSettings
-    from app.gui.mainwindow import demo_path
-
+    """Shoot every image of IMAGES into ``args.out``; the recording, the simulated
+    experiment and the settings it makes on the way are removed afterwards."""
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix="elastoid-screenshots-"))
+    try:
+        return _shoot_all(args, out, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _shoot_all(args, out: Path, tmp: Path) -> list[Path]:
+    from app.core.mesh import MeshSettings
+    from app.gui.mainwindow import demo_path
+
     d = Driver(out, tmp / "settings")
     win = d.win
     s = win.session

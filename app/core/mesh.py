@@ -232,16 +232,14 @@ def _die_with_parent() -> None:
             os._exit(1)
 
 
-def _tetwild_job(args, queue):
-    """Child process: run fTetWild and send the result back."""
+def _tetwild_job(args, queue, workdir: str):
+    """Child process: run fTetWild in ``workdir`` and send the result back."""
     try:
-        import tempfile
-
         import pytetwild
 
         _die_with_parent()
-        # fTetWild writes __tracked_surface.stl into the working directory
-        os.chdir(tempfile.mkdtemp(prefix="elastoid-tetwild-"))
+        # fTetWild writes __tracked_surface.stl (about 0.6 MB) into the working directory
+        os.chdir(workdir)
         v, f, bg_v, bg_t, bg_h, edge, eps, threads = args
         V, T = pytetwild.tetrahedralize(v, f.astype(np.int32), edge_length_abs=edge, epsilon=eps,
                                         bg_vertices=bg_v, bg_tets=bg_t, bg_values=bg_h, num_threads=threads)
@@ -297,9 +295,15 @@ def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
     import queue as _q
     import time
 
+    import tempfile
+
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    proc = ctx.Process(target=_tetwild_job, args=(args, queue), daemon=True)
+    # the parent owns the child's working folder and removes it, whether the child
+    # finished, failed, was cancelled or was killed (one left per meshing run had
+    # added 88 folders to /tmp over a day of diagnoses here)
+    workdir = tempfile.mkdtemp(prefix="elastoid-tetwild-")
+    proc = ctx.Process(target=_tetwild_job, args=(args, queue, workdir), daemon=True)
     proc.start()
     t0 = time.monotonic()
     result = None
@@ -318,6 +322,7 @@ def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
         if proc.is_alive():
             proc.terminate()
         proc.join(timeout=5)
+        shutil.rmtree(workdir, ignore_errors=True)
     status, V, T = result
     if status != "ok":
         raise MeshingError(f"fTetWild failed: {V}")

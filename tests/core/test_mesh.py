@@ -123,13 +123,23 @@ def test_meshes_are_cached_by_their_inputs(mesh):
     assert len({_mesh_key(*o) for o in others} | {key}) == len(others) + 1
 
 
-def test_meshing_can_be_cancelled():
+def _temp_folder(tmp_path, monkeypatch):
+    """Point the temp folder of this process and of the mesher it spawns at ``tmp_path``."""
+    import tempfile
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+
+
+def test_meshing_can_be_cancelled(tmp_path, monkeypatch):
+    _temp_folder(tmp_path, monkeypatch)
     cancel = threading.Event()
     threading.Timer(0.5, cancel.set).start()
     t0 = time.perf_counter()
     with pytest.raises(Cancelled):
         build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=3.0, probe_edge_mm=1.0), cancel=cancel, use_cache=False)
     assert time.perf_counter() - t0 < 5.0
+    assert list(tmp_path.iterdir()) == []  # the mesher's working folder went with it
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal is Linux-only")
@@ -172,11 +182,15 @@ def test_the_mesher_dies_with_its_parent(tmp_path):
             parent.kill()
 
 
-def test_the_located_inclusions_looser_envelope_keeps_the_geometry():
+def test_the_located_inclusions_looser_envelope_keeps_the_geometry(tmp_path, monkeypatch):
     """A diagnosis meshes its located sphere with fTetWild's envelope at
     LOCATED_EPSILON (faster): the sphere keeps its volume, the box its faces and
-    the probe its whole face."""
+    the probe its whole face. And the mesher leaves no files behind: fTetWild
+    writes a copy of its input surface into its working folder (0.6 MB at paper
+    size), and one folder per meshing run had piled up in the temp folder."""
     from app.core.diagnose import LOCATED_EPSILON
+
+    _temp_folder(tmp_path, monkeypatch)
 
     regions = (Region("B", "background"), Region("I", "sphere", center_mm=(30.0, 25.0, 24.0), radius_mm=8.0))
     m = build_mesh(SIZE, PROBE, regions, MeshSettings(edge_mm=6.0, probe_edge_mm=2.0, epsilon=LOCATED_EPSILON),
@@ -188,6 +202,7 @@ def test_the_located_inclusions_looser_envelope_keeps_the_geometry():
     assert q.min_dihedral_deg > 3.0
     x0, x1, y0, y1 = PROBE
     assert probe_face_area_mm2(m) == pytest.approx((x1 - x0) * (y1 - y0), rel=1e-6)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_the_demo_opens_with_the_mesh_shipped_with_it(tmp_path, monkeypatch):

@@ -56,7 +56,9 @@ def test_docs_screenshots_come_from_the_current_code(tiny_experiment, visco_expe
     from PIL import Image
 
     assert os.environ.get("DISPLAY"), "the screenshots need an X display (install xvfb for pytest-xvfb)"
-    env = dict(os.environ, QT_QPA_PLATFORM="xcb")  # a real X platform: the 3-D view renders
+    temp = tmp_path / "temp"  # the script's own temp folder: it must leave it empty
+    temp.mkdir()
+    env = dict(os.environ, QT_QPA_PLATFORM="xcb", TMPDIR=str(temp))  # a real X platform: the 3-D view renders
     env.pop("ELASTOID_NO_3D", None)
     out = tmp_path / "images"
     cmd = [sys.executable, str(ROOT / "docs" / "screenshots.py"), "--out", str(out),
@@ -65,6 +67,7 @@ def test_docs_screenshots_come_from_the_current_code(tiny_experiment, visco_expe
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     tail = "\n".join((proc.stdout + proc.stderr).splitlines()[-40:])
     assert proc.returncode == 0, f"docs/screenshots.py failed (exit {proc.returncode}):\n{tail}"
+    assert list(temp.iterdir()) == [], "docs/screenshots.py left files in the temp folder"
     produced = {p.name for p in out.glob("*.png")}
     refs = referenced_images()
     assert set(refs) <= produced, f"shown in the docs but not written by docs/screenshots.py: " \
