@@ -293,9 +293,8 @@ def _copy_bundled(key: str, path: Path) -> bool:
 def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
     """Run fTetWild on ``args`` in a child process; (V, T), or MeshingError/Cancelled."""
     import queue as _q
-    import time
-
     import tempfile
+    import time
 
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
@@ -304,10 +303,10 @@ def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
     # added 88 folders to /tmp over a day of diagnoses here)
     workdir = tempfile.mkdtemp(prefix="elastoid-tetwild-")
     proc = ctx.Process(target=_tetwild_job, args=(args, queue, workdir), daemon=True)
-    proc.start()
     t0 = time.monotonic()
     result = None
     try:
+        proc.start()
         while result is None:
             if cancel is not None and cancel.is_set():
                 raise Cancelled("meshing cancelled")
@@ -321,7 +320,8 @@ def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
     finally:
         if proc.is_alive():
             proc.terminate()
-        proc.join(timeout=5)
+        if proc.pid is not None:  # started
+            proc.join(timeout=5)
         shutil.rmtree(workdir, ignore_errors=True)
     status, V, T = result
     if status != "ok":

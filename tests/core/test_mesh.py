@@ -153,7 +153,9 @@ def test_the_mesher_dies_with_its_parent(tmp_path):
         "from app.core.mesh import MeshSettings, build_mesh\n"
         "if __name__ == '__main__':\n"
         "    build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=2.0, probe_edge_mm=0.8), use_cache=False)\n")
-    parent = subprocess.Popen([sys.executable, str(script)], env={**os.environ, "ELASTOID_CACHE_DIR": str(tmp_path)})
+    # its own temp folder: killed with its parent, the mesher leaves its working folder behind
+    parent = subprocess.Popen([sys.executable, str(script)],
+                              env={**os.environ, "ELASTOID_CACHE_DIR": str(tmp_path), "TMPDIR": str(tmp_path)})
     try:
         child = None
         for _ in range(300):
