@@ -40,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from app.core.fem import assemble, interpolation_matrix, lame, p1_space  # noqa: E402
+from app.core.hyperelastic import neo_hookean_energy, neo_hookean_stress  # noqa: E402
 from app.core.solver import Factorized  # noqa: E402
 
 TRAVELS_MM = (3.7, 7.4, 11.1, 14.8)
@@ -80,14 +81,14 @@ class AveragedNodalVolume:
         k = self._kinematics(u)
         if k is None or np.any(k[4] <= 0):
             return np.inf
-        F, J, _, _, Ja = k
-        We = self.V * (self.mu / 2 * (np.einsum("miJ,miJ->m", F, F) - 3) - self.mu * np.log(J))
+        F, _, _, _, Ja = k
+        We = self.V * neo_hookean_energy(F, self.mu, 0.0)  # the law without its volumetric term
         return float(We.sum() + (self.Va * self.lam_a / 2 * np.log(Ja) ** 2).sum())
 
     def force(self, u, tangent: bool = False):
-        F, J, Finv, h, Ja = self._kinematics(u)
+        F, J, _, h, Ja = self._kinematics(u)
         p_e = (self.lam_a * np.log(Ja) / Ja)[self.T].mean(axis=1)  # nodal pressures, averaged on each tet
-        P = self.mu[:, None, None] * (F - Finv.transpose(0, 2, 1))
+        P = neo_hookean_stress(F, self.mu, 0.0)  # mu (F - F^-T)
         fe = self.V[:, None, None] * np.einsum("miJ,mbJ->mbi", P, self.dN) + (p_e * self.V * J)[:, None, None] * h
         f = np.bincount(self.dofs.ravel(), fe.reshape(self.m, 12).ravel(), minlength=3 * self.n)
         if not tangent:
