@@ -232,15 +232,20 @@ def _die_with_parent() -> None:
             os._exit(1)
 
 
-def _tetwild_job(args, queue, workdir: str):
-    """Child process: run fTetWild in ``workdir`` and send the result back."""
+_JOB_ARRAYS = ("v", "f", "bg_v", "bg_t", "bg_h")
+
+
+def _tetwild_job(workdir: str, edge, eps, threads, queue):
+    """Child process: run fTetWild in ``workdir`` on the surface the parent left
+    there (input.npz) and send the result back."""
     try:
         import pytetwild
 
         _die_with_parent()
         # fTetWild writes __tracked_surface.stl (about 0.6 MB) into the working directory
         os.chdir(workdir)
-        v, f, bg_v, bg_t, bg_h, edge, eps, threads = args
+        with np.load("input.npz") as d:
+            v, f, bg_v, bg_t, bg_h = (d[k] for k in _JOB_ARRAYS)
         V, T = pytetwild.tetrahedralize(v, f.astype(np.int32), edge_length_abs=edge, epsilon=eps,
                                         bg_vertices=bg_v, bg_tets=bg_t, bg_values=bg_h, num_threads=threads)
         queue.put(("ok", np.asarray(V, float), np.asarray(T, np.int64)))
@@ -302,10 +307,17 @@ def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
     # finished, failed, was cancelled or was killed (one left per meshing run had
     # added 88 folders to /tmp over a day of diagnoses here)
     workdir = tempfile.mkdtemp(prefix="elastoid-tetwild-")
-    proc = ctx.Process(target=_tetwild_job, args=(args, queue, workdir), daemon=True)
+    # the surface goes to the child as a file, not through start(): start() writes
+    # the process's arguments into a pipe that the parent itself holds open, so a
+    # child that died before reading them (0.5 MB at paper size, the pipe holds
+    # 64 kB) left the parent blocked in start() for ever, past every timeout (a
+    # script without a __main__ guard, whose spawned child re-runs it, did that)
+    *arrays, edge, eps, threads = args
+    proc = ctx.Process(target=_tetwild_job, args=(workdir, edge, eps, threads, queue), daemon=True)
     t0 = time.monotonic()
     result = None
     try:
+        np.savez(os.path.join(workdir, "input.npz"), **dict(zip(_JOB_ARRAYS, arrays)))
         proc.start()
         while result is None:
             if cancel is not None and cancel.is_set():

@@ -184,6 +184,32 @@ def test_the_mesher_dies_with_its_parent(tmp_path):
             parent.kill()
 
 
+def test_a_mesher_that_dies_at_start_up_is_reported_not_waited_for(tmp_path):
+    """A script that meshes at its top level, without a __main__ guard: the
+    spawned child runs the script again, fails to start another process during
+    its own start-up, and dies before reading what it was given. The parent had
+    waited for ever (start() blocked writing the 0.5 MB surface into a pipe it
+    holds open itself, before any timeout runs); now it reports the mesher's
+    exit and removes its working folder."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).resolve().parents[2])!r})\n"
+        "from tests.core.test_mesh import SIZE, PROBE, REGIONS\n"
+        "from app.core.mesh import MeshSettings, build_mesh\n"
+        "build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=2.0, probe_edge_mm=0.8), use_cache=False)\n")
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    try:
+        run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                             env={**os.environ, "ELASTOID_CACHE_DIR": str(tmp_path), "TMPDIR": str(temp)})
+    except subprocess.TimeoutExpired:
+        raise AssertionError("meshing waited for a mesher that had died") from None
+    assert run.returncode != 0
+    assert "MeshingError: the mesher stopped unexpectedly (exit code 1)" in run.stderr, run.stderr[-2000:]
+    assert list(temp.iterdir()) == []
+
+
 def test_the_located_inclusions_looser_envelope_keeps_the_geometry(tmp_path, monkeypatch):
     """A diagnosis meshes its located sphere with fTetWild's envelope at
     LOCATED_EPSILON (faster): the sphere keeps its volume, the box its faces and
