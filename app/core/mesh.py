@@ -295,6 +295,22 @@ def _copy_bundled(key: str, path: Path) -> bool:
     return True
 
 
+def _exit_text(code: int | None) -> str:
+    """How a child process ended, in words: a signal by its name (the kernel's
+    out-of-memory killer sends SIGKILL), else the exit code."""
+    import signal
+
+    if code is None or code >= 0:
+        return f"exit code {code}"
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        return f"killed by signal {-code}"
+    if name == "SIGKILL":
+        return "killed by SIGKILL: the system may have run out of memory; close other programs or try coarser mesh sizes"
+    return f"killed by {name}"
+
+
 def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
     """Run fTetWild on ``args`` in a child process; (V, T), or MeshingError/Cancelled."""
     import queue as _q
@@ -326,7 +342,7 @@ def _tetwild(args, cancel: threading.Event | None, timeout_s: float):
                 result = queue.get(timeout=0.1)
             except _q.Empty:
                 if not proc.is_alive():
-                    raise MeshingError(f"the mesher stopped unexpectedly (exit code {proc.exitcode})") from None
+                    raise MeshingError(f"the mesher stopped unexpectedly ({_exit_text(proc.exitcode)})") from None
                 if time.monotonic() - t0 > timeout_s:
                     raise MeshingError(f"meshing took longer than {timeout_s:.0f} s") from None
     finally:

@@ -210,6 +210,40 @@ def test_a_mesher_that_dies_at_start_up_is_reported_not_waited_for(tmp_path):
     assert list(temp.iterdir()) == []
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="signals as on Linux")
+def test_a_mesher_killed_midway_is_reported_with_its_signal(tmp_path, monkeypatch):
+    """The kernel's out-of-memory killer ends the mesher with SIGKILL: the error
+    says so in words ("exit code -9" told a clinician nothing)."""
+    import multiprocessing as mp
+    import signal
+
+    from app.core.errors import MeshingError
+
+    _temp_folder(tmp_path, monkeypatch)
+    errors = []
+
+    def run():
+        try:
+            build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=2.0, probe_edge_mm=0.8), use_cache=False)
+        except MeshingError as exc:
+            errors.append(str(exc))
+
+    worker = threading.Thread(target=run)
+    worker.start()
+    for _ in range(300):
+        if mp.active_children():
+            break
+        time.sleep(0.1)
+    assert mp.active_children(), "the mesher child never started"
+    time.sleep(1.0)  # fTetWild running
+    os.kill(mp.active_children()[0].pid, signal.SIGKILL)
+    worker.join(60)
+    assert not worker.is_alive()
+    assert len(errors) == 1 and "the mesher stopped unexpectedly (killed by SIGKILL: the system may have run out " \
+                                "of memory" in errors[0], errors
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_the_located_inclusions_looser_envelope_keeps_the_geometry(tmp_path, monkeypatch):
     """A diagnosis meshes its located sphere with fTetWild's envelope at
     LOCATED_EPSILON (faster): the sphere keeps its volume, the box its faces and
