@@ -307,7 +307,8 @@ def _exit_text(code: int | None) -> str:
     except ValueError:
         return f"killed by signal {-code}"
     if name == "SIGKILL":
-        return "killed by SIGKILL: the system may have run out of memory; close other programs or try coarser mesh sizes"
+        return ("killed by SIGKILL: the system may have run out of memory; close other programs or try coarser "
+                "mesh sizes")
     return f"killed by {name}"
 
 
