@@ -222,9 +222,9 @@ def test_a_mesher_killed_midway_is_reported_with_its_signal(tmp_path, monkeypatc
     _temp_folder(tmp_path, monkeypatch)
     errors = []
 
-    def run():
+    def run():  # fine enough to run for much longer than the second before the kill
         try:
-            build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=2.0, probe_edge_mm=0.8), use_cache=False)
+            build_mesh(SIZE, PROBE, REGIONS, MeshSettings(edge_mm=1.2, probe_edge_mm=0.5), use_cache=False)
         except MeshingError as exc:
             errors.append(str(exc))
 
