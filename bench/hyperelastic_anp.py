@@ -158,6 +158,18 @@ class AveragedNodalVolume:
         return np.array(fields), n_factor
 
 
+def image_plane_px(u3: np.ndarray, problem, exp) -> np.ndarray:
+    """Displacements (n, 3) mm at the warp control points -> (n, 2) px on the
+    image plane (lateral, axial) of ``problem`` (an identify.Problem)."""
+    sc, sr = exp.imaging.pixel_spacing_mm
+    return np.column_stack([(u3 @ problem._lat) / sc, u3[:, 2] / sr])
+
+
+def rms(a: np.ndarray) -> float:
+    """RMS length of the rows of ``a`` (n, 2)."""
+    return float(np.sqrt((a ** 2).sum(axis=1).mean()))
+
+
 def main() -> int:
     from app.core.experiment import read_experiment
     from app.core.forward import build_model
@@ -187,14 +199,10 @@ def main() -> int:
     print(f"linear force per mm of travel: P2 {k2:.4f} N, ANP {k1:.4f} N")
     pr = Problem.from_experiment(exp, mesh=mesh)
     pts = pr.ctrl_world
-    sc, sr = exp.imaging.pixel_spacing_mm
     I2, I1 = interpolation_matrix(fe2.space, pts), interpolation_matrix(fe1.space, pts)
 
-    def px(u3):  # (n, 3) mm -> (n, 2) px on the image plane
-        return np.column_stack([(u3 @ pr._lat) / sc, u3[:, 2] / sr])
-
-    def rms(a):
-        return float(np.sqrt((a ** 2).sum(axis=1).mean()))
+    def px(u3):
+        return image_plane_px(u3, pr, exp)
 
     print(f"{'travel mm':>9s} {'F P2 hyper':>10s} {'F P2 lin':>8s} {'F corr':>7s} {'F ANP':>6s} "
           f"{'nonlinear px':>12s} {'corr - P2 px':>12s} {'max px':>6s}")

@@ -30,10 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from app.core.fem import interpolation_matrix  # noqa: E402
-
-TRAVELS_MM = (3.7, 7.4, 11.1, 14.8)
-MODULI_KPA = (18.0, 63.0)
-NU = 0.49
+from bench.hyperelastic_anp import MODULI_KPA, NU, TRAVELS_MM, AveragedNodalVolume, image_plane_px, rms  # noqa: E402
 
 
 def walk(fe, travels):
@@ -53,7 +50,6 @@ def main() -> int:
     from app.core.forward import build_model
     from app.core.identify import Problem
     from app.core.mesh import MeshSettings, specimen_mesh
-    from bench.hyperelastic_anp import AveragedNodalVolume
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reference", type=float, default=0.7, help="the reference P2 mesh's scale (< 1: finer)")
@@ -64,13 +60,9 @@ def main() -> int:
     travels = np.array(TRAVELS_MM)
     pr = Problem.from_experiment(exp, mesh=specimen_mesh(exp))
     pts = pr.ctrl_world
-    sc, sr = exp.imaging.pixel_spacing_mm
 
-    def px(u3):  # (n, 3) mm -> (n, 2) px on the image plane
-        return np.column_stack([(u3 @ pr._lat) / sc, u3[:, 2] / sr])
-
-    def rms(a):
-        return float(np.sqrt((a ** 2).sum(axis=1).mean()))
+    def px(u3):
+        return image_plane_px(u3, pr, exp)
 
     sources = {}  # name -> (linear field per mm at the points (n, 3), [nonlinear part at each travel], forces, k)
     for s in [args.reference] + list(args.scales):
@@ -97,7 +89,7 @@ def main() -> int:
             print(f"ANP x1: walk {time.perf_counter() - t:.1f} s, {n1} factorizations; linear force {k1:.4f} N/mm",
                   flush=True)
     ref_name = f"P2 x{args.reference:g}"
-    ref_lin, ref_nl, ref_f, ref_k = sources[ref_name]
+    ref_lin, ref_nl, _, _ = sources[ref_name]
     print(f"\nreference {ref_name}; nonlinear part = hyperelastic - linear field, on the demo's "
           f"{len(pts)} warp control points")
     print(f"{'source':>8s} {'travel':>6s} {'F':>7s} {'F nonlin':>8s} {'nonlin px':>9s} "
