@@ -64,8 +64,8 @@ def main() -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reference", type=float, default=0.55, help="the reference mesh's scale of the automatic sizing")
-    ap.add_argument("--variants", nargs="+", default=["auto", "scale=0.8", "edge=8", "edge=6", "region=3", "probe=1.4", "probe=1.0",
-                                                "grading=0.25", "probe=1.4+grading=0.25"])
+    ap.add_argument("--variants", nargs="+", default=["auto", "scale=0.8", "edge=8", "edge=6", "region=3", "probe=1.4",
+                                                      "probe=1.0", "grading=0.25", "probe=1.4+grading=0.25"])
     args = ap.parse_args()
     exp = read_experiment(ROOT / "resources" / "demo")
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
