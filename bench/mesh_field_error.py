@@ -15,7 +15,8 @@ the probe's force per mm against the reference's; and each model's size.
 Variants: ``auto`` (the automatic sizing: for the demo, the shipped mesh), or
 ``+``-joined changes to it: ``scale=s`` (every length times s), ``edge=mm``
 (far from the probe), ``probe=mm`` (on the probe face), ``region=mm`` (in and
-around region A), ``grading=g`` (mm of element size per mm from the probe).
+around region A), ``grading=g`` (mm of element size per mm from the probe),
+``outline=mm`` (along the probe face's outline: MeshSettings.outline_edge_mm).
 fTetWild makes a different mesh on every run (meshes are cached: set
 ELASTOID_CACHE_DIR to an empty folder for fresh ones), so each row stands for
 one mesh of its sizing.
@@ -52,7 +53,7 @@ def settings_of(variant: str, auto):
             out = out.with_scale(val)
         else:
             out = replace(out, **{{"edge": "edge_mm", "probe": "probe_edge_mm", "region": "region_edge_mm",
-                                   "grading": "grading"}[kind]: val})
+                                   "grading": "grading", "outline": "outline_edge_mm"}[kind]: val})
     return out
 
 
@@ -65,7 +66,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reference", type=float, default=0.55, help="the reference mesh's scale of the automatic sizing")
     ap.add_argument("--variants", nargs="+", default=["auto", "scale=0.8", "edge=8", "edge=6", "region=3", "probe=1.4",
-                                                      "probe=1.0", "grading=0.25", "probe=1.4+grading=0.25"])
+                                                      "probe=1.0", "grading=0.25", "probe=1.4+grading=0.25",
+                                                      "outline=1.0"])
     args = ap.parse_args()
     exp = read_experiment(ROOT / "resources" / "demo")
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)

@@ -367,3 +367,21 @@ def test_identify_and_diagnose_say_when_the_default_frames_leave_some_out(capsys
     _say_thinned(video, (0, 5, 9), quiet=False)
     _say_thinned(SimpleNamespace(frames=video.frames[:31]), None, quiet=False)
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("command", ["identify", "diagnose"])
+def test_the_element_size_options_set_the_mesh_and_keep_the_automatic_rest(command):
+    """--outline-edge-mm (the size along the probe face's outline) alone keeps the
+    automatic sizes elsewhere; with no size option the sizes stay automatic."""
+    from app import cli
+    from app.core.experiment import read_experiment
+    from app.core.mesh import auto_settings
+
+    exp = read_experiment(ROOT / "resources" / "demo")
+    auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
+    parse = cli.build_parser().parse_args
+    assert cli._mesh_settings(parse([command, "resources/demo"]), exp) is None
+    s = cli._mesh_settings(parse([command, "resources/demo", "--outline-edge-mm", "1.0"]), exp)
+    assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, auto.probe_edge_mm, 1.0)
+    s = cli._mesh_settings(parse([command, "resources/demo", "--probe-edge-mm", "1.5"]), exp)
+    assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, 1.5, None)

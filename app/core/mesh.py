@@ -32,18 +32,29 @@ MESH_VERSION = 7  # bump when meshing changes, to invalidate caches
 @dataclass(frozen=True)
 class MeshSettings:
     """Target edge lengths in mm: ``edge_mm`` far from the probe, ``probe_edge_mm``
-    on the probe face; the size grows by ``grading`` mm per mm of distance."""
+    on the probe face; the size grows by ``grading`` mm per mm of distance.
+
+    ``outline_edge_mm``: a smaller size along the probe face's outline, where the
+    bonded face's edges make the field singular (None: the face's own size),
+    growing from it at the ``grading`` rate (so the face's interior keeps its
+    own size). On the paper's phantom 1.0 mm there (2.0 mm on the face) took the
+    linear field on the image plane from 0.53 to 0.23 px of a 0.55x finer mesh's
+    at 14.8 mm, with 19% more vertices; 1.0 mm on the whole face gave 0.22 px
+    with 33% more and a hyperelastic walk three times as long
+    (bench/mesh_field_error.py, docs/model-check.md)."""
 
     edge_mm: float = 10.0
     probe_edge_mm: float = 2.5
     grading: float = 0.35
     epsilon: float = 5e-4  # fTetWild envelope, relative to the bounding box diagonal
     region_edge_mm: float | None = None  # size in and around regions (default: a fifth of their thinnest extent)
+    outline_edge_mm: float | None = None
 
     def with_scale(self, factor: float) -> "MeshSettings":
         """Every length multiplied by ``factor`` (< 1 refines)."""
         r = None if self.region_edge_mm is None else self.region_edge_mm * factor
-        return MeshSettings(self.edge_mm * factor, self.probe_edge_mm * factor, self.grading, self.epsilon, r)
+        o = None if self.outline_edge_mm is None else self.outline_edge_mm * factor
+        return MeshSettings(self.edge_mm * factor, self.probe_edge_mm * factor, self.grading, self.epsilon, r, o)
 
 
 @dataclass(frozen=True)
@@ -208,6 +219,11 @@ def sizing_field(size_mm, probe_rect_mm, settings: MeshSettings, regions: tuple[
     dy = np.maximum(np.maximum(y0 - pts[:, 1], pts[:, 1] - y1), 0)
     dz = sz - pts[:, 2]
     h = np.minimum(settings.probe_edge_mm + settings.grading * np.sqrt(dx**2 + dy**2 + dz**2), settings.edge_mm)
+    if settings.outline_edge_mm is not None:  # the face's outline, graded outward in 3-D
+        inside = (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
+        to_side = np.minimum.reduce([pts[:, 0] - x0, x1 - pts[:, 0], pts[:, 1] - y0, y1 - pts[:, 1]])
+        on_top = np.where(inside, to_side, np.hypot(dx, dy))  # to the outline, in the top face's plane
+        h = np.minimum(h, settings.outline_edge_mm + settings.grading * np.hypot(on_top, dz))
     # resolve each region's strain field: small elements in and around it, graded outward
     for r in regions[1:]:
         lo, hi = r.bounds_mm()
@@ -261,8 +277,11 @@ def _mesh_key(size_mm, probe_rect_mm, regions, settings) -> str:
                                         + np.ascontiguousarray(r.surface_mesh[1]).tobytes()).hexdigest()
         return d
 
+    sizes = asdict(settings)
+    if sizes["outline_edge_mm"] is None:  # the keys of meshes made before the setting existed
+        del sizes["outline_edge_mm"]
     blob = json.dumps({"v": MESH_VERSION, "size": list(size_mm), "probe": list(probe_rect_mm),
-                       "regions": [reg(r) for r in regions], "settings": asdict(settings)},
+                       "regions": [reg(r) for r in regions], "settings": sizes},
                       sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:24]
 

@@ -309,3 +309,33 @@ def test_the_automatic_elements_on_the_probe_face_are_at_most_2_mm(face, expecte
     s = auto_settings((90.0, 90.0, 96.0), rect, regions)
     assert s.probe_edge_mm == pytest.approx(expected) and s.probe_edge_mm <= PROBE_EDGE_MAX_MM
     assert s.edge_mm == 10.0
+
+
+def test_the_outline_size_refines_beside_the_face_outline_and_not_inside_the_face():
+    """``outline_edge_mm``: the bonded face's edges are where the model's error is
+    largest (bench/mesh_field_error.py), so the size there can be set below the
+    face's own. The target size is the outline size on the outline, grows at the
+    grading's rate from it, and stays the face's own inside the face away from
+    the outline; settings without it keep their cache keys (the shipped meshes)."""
+    from app.core.mesh import _mesh_key
+
+    face = MeshSettings(edge_mm=6.0, probe_edge_mm=2.0)
+    outlined = replace(face, outline_edge_mm=1.5)
+    P, _, h0 = sizing_field(SIZE, PROBE, face)
+    _, _, h1 = sizing_field(SIZE, PROBE, outlined)
+    x0, x1, y0, y1 = PROBE
+    inside = (P[:, 0] >= x0) & (P[:, 0] <= x1) & (P[:, 1] >= y0) & (P[:, 1] <= y1)
+    to_outline = np.where(inside, np.minimum.reduce([P[:, 0] - x0, x1 - P[:, 0], P[:, 1] - y0, y1 - P[:, 1]]),
+                          np.hypot(np.maximum(np.maximum(x0 - P[:, 0], P[:, 0] - x1), 0),
+                                   np.maximum(np.maximum(y0 - P[:, 1], P[:, 1] - y1), 0)))
+    d = np.hypot(to_outline, SIZE[2] - P[:, 2])
+    assert np.all(h1 <= h0 + 1e-12)
+    assert np.allclose(h1, np.minimum(h0, 1.5 + face.grading * d))
+    near = d <= 1.0 + 1e-9  # the background grid's points nearest the outline (2 mm apart here)
+    assert near.any() and np.all(h1[near] <= 1.5 + face.grading * 1.0) and np.all(h0[near] >= 2.0)
+    deep_inside = inside & (np.isclose(P[:, 2], SIZE[2])) & (to_outline > 1.5)
+    assert deep_inside.any() and np.allclose(h1[deep_inside], 2.0)
+    assert (outlined.with_scale(0.5).outline_edge_mm, face.with_scale(0.5).outline_edge_mm) == (0.75, None)
+    regions = REGIONS[:2]
+    keys = {_mesh_key(SIZE, PROBE, regions, s) for s in (face, outlined, replace(face, outline_edge_mm=1.0))}
+    assert len(keys) == 3

@@ -118,3 +118,21 @@ def test_automatic_mesh_sizes_by_default(window, noise_experiment, tmp_path):
     assert s.mesh_settings.edge_mm == 7.0
     panel.auto_sizes.setChecked(True)
     assert s.mesh_settings is None
+
+
+def test_the_outline_size_is_set_in_the_panel(window, tiny_experiment):
+    """"Along its outline" sets the mesh's outline_edge_mm; its lowest value, "as
+    the face", leaves it unset; it is editable only with the sizes not automatic."""
+    window.open_experiment(tiny_experiment)
+    s, panel = window.session, window.mesh_panel
+    assert s.mesh_settings is None and not panel.outline_edge.isEnabled()
+    assert panel.outline_edge.text() == "as the face"
+    panel.auto_sizes.setChecked(False)
+    assert panel.outline_edge.isEnabled()
+    panel.outline_edge.setValue(1.0)
+    assert s.mesh_settings.outline_edge_mm == 1.0
+    assert s.mesh_settings.probe_edge_mm == panel.probe_edge.value()
+    panel.outline_edge.setValue(0.0)
+    assert s.mesh_settings.outline_edge_mm is None
+    s.set_mesh_settings(replace(s.mesh_settings, outline_edge_mm=0.75))  # e.g. a saved session
+    assert panel.outline_edge.value() == 0.75

@@ -130,8 +130,15 @@ class MeshPanel(Panel):
         m.addWidget(self.edge, 1, 1)
         m.addWidget(QLabel("Under the probe"), 2, 0)
         m.addWidget(self.probe_edge, 2, 1)
-        self.edge.valueChanged.connect(self._settings_edited)
-        self.probe_edge.valueChanged.connect(self._settings_edited)
+        # the lowest value means no size of its own: the face's
+        self.outline_edge = spin(0.0, 20.0, 0.0, decimals=2, step=0.25, suffix="mm",
+                                 tip="Target edge length along the probe face's outline, where the model's error "
+                                     "is largest (docs/user-guide.md, Specimen and mesh)")
+        self.outline_edge.setSpecialValueText("as the face")
+        m.addWidget(QLabel("Along its outline"), 3, 0)
+        m.addWidget(self.outline_edge, 3, 1)
+        for w in (self.edge, self.probe_edge, self.outline_edge):
+            w.valueChanged.connect(self._settings_edited)
         bb = QHBoxLayout()
         self.mesh_button = QPushButton("Generate mesh")
         self.mesh_button.setObjectName("primary")
@@ -140,11 +147,11 @@ class MeshPanel(Panel):
         bb.addWidget(self.mesh_button)
         bb.addWidget(self.cancel_button)
         bb.addStretch(1)
-        m.addLayout(bb, 3, 0, 1, 2)
+        m.addLayout(bb, 4, 0, 1, 2)
         self.mesh_button.clicked.connect(self.generate_mesh)
         self.cancel_button.clicked.connect(self.cancel)
         self.mesh_state = hint("No mesh yet.")
-        m.addWidget(self.mesh_state, 4, 0, 1, 2)
+        m.addWidget(self.mesh_state, 5, 0, 1, 2)
         self.quality = QPlainTextEdit()
         self.quality.setObjectName("report")
         self.quality.setReadOnly(True)
@@ -152,7 +159,7 @@ class MeshPanel(Panel):
         self.quality.setMinimumHeight(90)
         self.quality.setPlaceholderText("Mesh statistics appear here: nodes, elements, dihedral angles, "
                                         "meshed vs geometric volume of each region.")
-        m.addWidget(self.quality, 5, 0, 1, 2)
+        m.addWidget(self.quality, 6, 0, 1, 2)
         sl.addWidget(mesh)
         side.setMinimumWidth(380)
         side.setMaximumWidth(460)
@@ -221,11 +228,12 @@ class MeshPanel(Panel):
             self.auto_sizes.setChecked(auto)
             self.edge.setValue(eff.edge_mm)
             self.probe_edge.setValue(eff.probe_edge_mm)
+            self.outline_edge.setValue(eff.outline_edge_mm or 0.0)
         finally:
             self._updating = False
         editable = self.session.has_experiment and self.session.locked_by is None
-        self.edge.setEnabled(editable and not auto)
-        self.probe_edge.setEnabled(editable and not auto)
+        for w in (self.edge, self.probe_edge, self.outline_edge):
+            w.setEnabled(editable and not auto)
 
     def _auto_toggled(self, on: bool) -> None:
         if self._updating:
@@ -373,7 +381,8 @@ class MeshPanel(Panel):
         from dataclasses import replace
 
         base = self.session.effective_mesh_settings()
-        self.session.set_mesh_settings(replace(base, edge_mm=self.edge.value(), probe_edge_mm=self.probe_edge.value()))
+        self.session.set_mesh_settings(replace(base, edge_mm=self.edge.value(), probe_edge_mm=self.probe_edge.value(),
+                                               outline_edge_mm=self.outline_edge.value() or None))
 
     # ---- meshing (worker) ---------------------------------------------------------------------------
     def generate_mesh(self) -> None:
@@ -400,7 +409,9 @@ class MeshPanel(Panel):
         self.cancel_button.setEnabled(True)
         self.mesh_state.setText("Meshing...")
         self.busy.emit("Meshing", 0, 0)
-        log.info("meshing with element size %.2f mm, %.2f mm under the probe", settings.edge_mm, settings.probe_edge_mm)
+        log.info("meshing with element size %.2f mm, %.2f mm under the probe%s", settings.edge_mm,
+                 settings.probe_edge_mm,
+                 "" if settings.outline_edge_mm is None else f", {settings.outline_edge_mm:.2f} mm along its outline")
         self.task.start()
 
     def cancel(self) -> None:
