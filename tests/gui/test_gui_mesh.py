@@ -121,7 +121,7 @@ def test_automatic_mesh_sizes_by_default(window, noise_experiment, tmp_path):
 
 
 def test_the_outline_size_is_set_in_the_panel(window, tiny_experiment):
-    """"Along its outline" sets the mesh's outline_edge_mm; its lowest value, "as
+    """The "outline" box beside "Under the probe" sets the mesh's outline_edge_mm; its lowest value, "as
     the face", leaves it unset; it is editable only with the sizes not automatic."""
     window.open_experiment(tiny_experiment)
     s, panel = window.session, window.mesh_panel

@@ -128,15 +128,17 @@ class MeshPanel(Panel):
                                tip="Target edge length on the probe face (the mesh is graded in between)")
         m.addWidget(QLabel("Element size"), 1, 0)
         m.addWidget(self.edge, 1, 1)
-        m.addWidget(QLabel("Under the probe"), 2, 0)
-        m.addWidget(self.probe_edge, 2, 1)
         # the lowest value means no size of its own: the face's
         self.outline_edge = spin(0.0, 20.0, 0.0, decimals=2, step=0.25, suffix="mm",
                                  tip="Target edge length along the probe face's outline, where the model's error "
                                      "is largest (docs/user-guide.md, Specimen and mesh)")
         self.outline_edge.setSpecialValueText("as the face")
-        m.addWidget(QLabel("Along its outline"), 3, 0)
-        m.addWidget(self.outline_edge, 3, 1)
+        probe_row = QHBoxLayout()  # one row, so that Generate mesh stays in view
+        probe_row.addWidget(self.probe_edge, 1)
+        probe_row.addWidget(QLabel("outline"))
+        probe_row.addWidget(self.outline_edge, 1)
+        m.addWidget(QLabel("Under the probe"), 2, 0)
+        m.addLayout(probe_row, 2, 1)
         for w in (self.edge, self.probe_edge, self.outline_edge):
             w.valueChanged.connect(self._settings_edited)
         bb = QHBoxLayout()
@@ -147,11 +149,11 @@ class MeshPanel(Panel):
         bb.addWidget(self.mesh_button)
         bb.addWidget(self.cancel_button)
         bb.addStretch(1)
-        m.addLayout(bb, 4, 0, 1, 2)
+        m.addLayout(bb, 3, 0, 1, 2)
         self.mesh_button.clicked.connect(self.generate_mesh)
         self.cancel_button.clicked.connect(self.cancel)
         self.mesh_state = hint("No mesh yet.")
-        m.addWidget(self.mesh_state, 5, 0, 1, 2)
+        m.addWidget(self.mesh_state, 4, 0, 1, 2)
         self.quality = QPlainTextEdit()
         self.quality.setObjectName("report")
         self.quality.setReadOnly(True)
@@ -159,7 +161,7 @@ class MeshPanel(Panel):
         self.quality.setMinimumHeight(90)
         self.quality.setPlaceholderText("Mesh statistics appear here: nodes, elements, dihedral angles, "
                                         "meshed vs geometric volume of each region.")
-        m.addWidget(self.quality, 6, 0, 1, 2)
+        m.addWidget(self.quality, 5, 0, 1, 2)
         sl.addWidget(mesh)
         side.setMinimumWidth(380)
         side.setMaximumWidth(460)
