@@ -290,14 +290,23 @@ def _say_thinned(exp, frames, quiet: bool) -> None:
         print(f"elastoid: {note}", file=sys.stderr)
 
 
+def _add_mesh_options(parser) -> None:
+    """The element-size options that :func:`_mesh_settings` reads (identify, diagnose)."""
+    parser.add_argument("--mesh-edge-mm", type=_positive, help="element size far from the probe (default: automatic)")
+    parser.add_argument("--probe-edge-mm", type=_positive, help="element size on the probe face (default: automatic)")
+    parser.add_argument("--outline-edge-mm", type=_positive,
+                        help="element size along the probe face's outline, where the model's error is largest "
+                             "(default: the face's size)")
+
+
 def _mesh_settings(args, exp):
     from app.core.mesh import MeshSettings, auto_settings
 
     if not (args.mesh_edge_mm or args.probe_edge_mm or args.outline_edge_mm):
         return None
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
-    return MeshSettings(edge_mm=args.mesh_edge_mm or auto.edge_mm, probe_edge_mm=args.probe_edge_mm or auto.probe_edge_mm,
-                        outline_edge_mm=args.outline_edge_mm)
+    return MeshSettings(edge_mm=args.mesh_edge_mm or auto.edge_mm,
+                        probe_edge_mm=args.probe_edge_mm or auto.probe_edge_mm, outline_edge_mm=args.outline_edge_mm)
 
 
 def cmd_diagnose(args) -> int:
@@ -438,11 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "experiment's)")
     ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")
     ip.add_argument("--nu", type=_poisson, default=0.49, help="Poisson's ratio (default 0.49)")
-    ip.add_argument("--mesh-edge-mm", type=_positive, help="element size far from the probe (default: automatic)")
-    ip.add_argument("--probe-edge-mm", type=_positive, help="element size on the probe face (default: automatic)")
-    ip.add_argument("--outline-edge-mm", type=_positive,
-                    help="element size along the probe face's outline, where the model's error is largest "
-                         "(default: the face's size)")
+    _add_mesh_options(ip)
     ip.add_argument("--refine-inclusion", action="store_true",
                     help="with --effects inclusion: after locating the sphere, search its place and size as the "
                          "Model check's 'Refine the inclusion's place' does, and fit with the refined sphere when "
@@ -455,11 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
     dp.add_argument("--effects", default="", help="effects already in the current model (ids, comma-separated)")
     dp.add_argument("--candidates", default="", help="effects to try (default: every effect not in the model)")
     dp.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
-    dp.add_argument("--mesh-edge-mm", type=_positive, help="element size far from the probe (default: automatic)")
-    dp.add_argument("--probe-edge-mm", type=_positive, help="element size on the probe face (default: automatic)")
-    dp.add_argument("--outline-edge-mm", type=_positive,
-                    help="element size along the probe face's outline, where the model's error is largest "
-                         "(default: the face's size)")
+    _add_mesh_options(dp)
     dp.add_argument("--quiet", action="store_true", help="no progress line")
     dp.set_defaults(func=cmd_diagnose)
 
