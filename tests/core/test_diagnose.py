@@ -70,6 +70,16 @@ def test_hidden_viscoelasticity_is_named_and_adding_it_fixes_the_model(visco):
     payload = d.to_json_dict()
     assert payload["verdict"] == "viscoelastic" and payload["candidates"][0]["effect"] == "viscoelastic"
     assert {"total", "nmi", "force_rms_N"} <= set(payload["candidates"][0]["cost"])
+    # the model called for, identified as identify does (NMI and force) from the candidate's
+    # maximum-likelihood fit: its cost is no higher there, and its moduli are the ones reported
+    ident = payload["identified"]
+    assert ident["effects"] == ["viscoelastic"] and set(ident["parameters"]) == set(c.parameters)
+    assert ident["cost"]["total"] <= c.cost["total"]
+    for region, err in _moduli_errors(ident["parameters"], read_truth(exp.path)["moduli_kPa"]).items():
+        assert abs(err) < 0.10, (region, err, d.lines())
+    assert any(line.startswith("identified (viscoelastic; NMI and force") for line in d.lines()), d.lines()
+    # the current model was identified by the diagnosis too: that is its identification
+    assert d.baseline.identified is not None and d.baseline.identified["parameters"] != d.baseline.parameters
 
 
 def test_hidden_viscoelasticity_on_the_second_geometry(tmp_path_factory):
@@ -128,6 +138,11 @@ def test_model_check_adds_the_verdict_as_a_version_and_reverts(visco):
     assert d.candidate("probe-slip").problem.rm._prec is None
     v1 = mc.add()
     assert v1.effects == ("viscoelastic",) and v1.parent == 0
+    # the version holds the verdict's identification (NMI and force, as the first version's), not
+    # the maximum-likelihood fit the candidate was scored with
+    assert d.identified["effects"] == ["viscoelastic"] and d.baseline.identified is None  # version 0 given
+    assert v1.parameters == d.identified["parameters"] != d.candidate("viscoelastic").parameters
+    assert v1.cost == d.identified["cost"]
     errs = mc.history.errors()
     assert errs["label"] == ["baseline", "+ viscoelastic"]
     assert errs["force_rms_N"][1] < errs["force_rms_N"][0] / 3

@@ -151,6 +151,9 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     assert "g1" in panel.diagnosis_table.item(row, 3).text()
     assert "relaxes" in panel.diagnosis_table.item(row, 4).text()
     assert "Verdict: viscoelastic" in panel.verdict_label.text()
+    # the moduli to report: the verdict's model identified as Identify does, which Add verdict keeps
+    d = panel.model.snapshot.diagnosis
+    assert "Identified with it" in panel.verdict_label.text() and d.identified_text() in panel.verdict_label.text()
     assert "Gaussian" in panel.noise_label.text() and "tracked blocks" in panel.noise_label.text()
     assert panel.tabs.currentIndex() == 1
     assert panel.add_verdict_button.isEnabled() and "viscoelastic" in panel.add_verdict_button.text()
@@ -162,6 +165,7 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     assert not win.error_boxes, [b.informativeText() for b in win.error_boxes]
     h = panel.model.history
     assert len(h) == 2 and h.current == 1 and h.versions[1].effects == ("viscoelastic",)
+    assert h.versions[1].parameters == d.identified["parameters"]
     assert panel.history_table.rowCount() == 2 and panel.history_table.item(1, 0).text().startswith("\u25b6")
     assert panel.history_table.item(1, 1).text() == "+ viscoelastic"
     xs, ys = panel.error_curves["force_rms_N"].getData()

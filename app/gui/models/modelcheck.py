@@ -444,7 +444,9 @@ def verdict_parts(diagnosis) -> tuple[str, str, str, str]:
         return "Verdict: none", f". {d.none_text(with_masked=False)}.", d.masked_sentence(), ""
     c = d.candidate(d.verdict)
     ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
-    return (f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.", d.masked_sentence(),
+    ident = (f" Identified with it, from the whole frames and the force: {d.identified_text()} (Add verdict makes "
+             "this the new version).") if d.identified else ""
+    return (f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.{ident}", d.masked_sentence(),
             d.tie_advice() or "")
 
 
