@@ -1043,9 +1043,9 @@ def identify_from(problem: EffectProblem, start: dict, *, cancel=None, max_evalu
     blind seed measured: E_A +15.5% against -1.3% on a soft A on a sliding bottom,
     +13.2% against -0.4% on a neo-Hookean phantom (docs/model-check.md, "The moduli
     an added effect gives"). Started from the likelihood's optimum it takes one
-    simplex run (6-9 s at paper size, 49 s with the hyperelastic effect), not the
-    two starts from uniform moduli of ``identify``, which on the neo-Hookean seed
-    stopped at a worse optimum (E_A -12%)."""
+    simplex run: 1-4 s inside a diagnosis at paper size, where the model is built
+    and trained already, and 27 s with the hyperelastic effect (its correction
+    refreshed on a new walk of the load path)."""
     f = fit_hyperelastic if "hyperelastic" in problem.effects else fit
     return f(problem, problem.complete(start), cancel=cancel, max_evaluations=max_evaluations)
 
