@@ -2284,9 +2284,10 @@ class ModelCheck:
         if not c.fitted:
             raise ElastoidError(f"{effect} could not be fitted")
         say = progress or (lambda s: None)
-        if c.problem is None:  # a restored diagnosis: the candidate's model, rebuilt
+        if c.problem is None:  # a restored diagnosis: the candidate's model, rebuilt where the version will sit
             say(f"rebuilding the model with {effect}")
-            c.problem = self._build(c.effects, c.inclusion, progress, cancel, c.parameters)
+            at = c.identified["parameters"] if c.identified else c.parameters
+            c.problem = self._build(c.effects, c.inclusion, progress, cancel, at)
         if c.identified is None:
             say(f"identifying the model with {effect} (NMI and force, from the diagnosis' fit)")
             t1 = time.perf_counter()
