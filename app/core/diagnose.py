@@ -1025,9 +1025,21 @@ def _fit_ml(problem: EffectProblem, lik: Likelihood, start: dict, cancel, max_ev
     return fit(problem, start, **kw)
 
 
+def _identify_current(problem: EffectProblem, cancel, say):
+    """The current model identified from the diagnosis' starts, as ``identify`` does (its Result)."""
+    say("identifying the current model")
+    return identify_with_effects(problem, (10.0, 30.0), cancel=cancel)
+
+
 def _identified(res, t0: float) -> dict:
     """Candidate.identified from an identification's result that started at ``t0``."""
     return {"parameters": dict(res.parameters), "cost": dict(res.cost), "seconds": round(time.perf_counter() - t0, 2)}
+
+
+def _identified_from(problem: EffectProblem, start: dict, cancel) -> dict:
+    """Candidate.identified of ``problem`` identified from ``start`` (:func:`identify_from`), timed."""
+    t0 = time.perf_counter()
+    return _identified(identify_from(problem, start, cancel=cancel), t0)
 
 
 def identify_from(problem: EffectProblem, start: dict, *, cancel=None, max_evaluations: int = 300) -> FitResult:
@@ -1133,8 +1145,7 @@ def _current_fit(problem: EffectProblem, start: dict | None, tracked, cancel, ma
     model, and the maximum-likelihood refit. Returns (tracked field, noise model,
     likelihood, the refit, the refit's seconds)."""
     if start is None:
-        say("identifying the current model")
-        start = identify_with_effects(problem, (10.0, 30.0), cancel=cancel).parameters
+        start = _identify_current(problem, cancel, say).parameters
     start = problem.complete(start)
     if "hyperelastic" in problem.effects and problem._hyper is None:
         problem.refresh_hyperelastic(start, cancel=cancel)
@@ -1520,11 +1531,9 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
                                 cancel=cancel)
     identified = None
     if start is None:  # identified here, as _current_fit would: its moduli are the ones to report
-        say("identifying the current model")
         t1 = time.perf_counter()
-        res = identify_with_effects(problem, (10.0, 30.0), cancel=cancel)
-        start = res.parameters
-        identified = _identified(res, t1)
+        res = _identify_current(problem, cancel, say)
+        start, identified = res.parameters, _identified(res, t1)
     tracked, noise, lik0, r0, fit_s = _current_fit(problem, start, tracked, cancel, max_evaluations, say)
     lnN = math.log(noise.n)
     base_params = r0.parameters
@@ -1576,9 +1585,8 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     c = next((c for c in out if c.effect == verdict), None)
     if c is not None and c.problem is not None:
         say(f"identifying the model with {verdict} (NMI and force, from its fit)")
-        t1 = time.perf_counter()
         try:
-            c.identified = _identified(identify_from(c.problem, c.parameters, cancel=cancel), t1)
+            c.identified = _identified_from(c.problem, c.parameters, cancel)
         except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate's fit stands
             say(f"{verdict}: not identified ({exc})")
         c.problem.release(keep=problem)
@@ -2290,8 +2298,7 @@ class ModelCheck:
             c.problem = self._build(c.effects, c.inclusion, progress, cancel, at)
         if c.identified is None:
             say(f"identifying the model with {effect} (NMI and force, from the diagnosis' fit)")
-            t1 = time.perf_counter()
-            c.identified = _identified(identify_from(c.problem, c.parameters, cancel=cancel), t1)
+            c.identified = _identified_from(c.problem, c.parameters, cancel)
         return self._add_version(c.problem, c.identified["parameters"], c.identified["cost"], f"added {effect}",
                                  c.inclusion, support_warning(d, c, self.history.current))
 
