@@ -731,7 +731,7 @@ def test_a_verdict_of_none_says_why_and_names_an_effect_that_came_close():
     text = d.none_text()
     assert "lowers the misfit by more than its parameters cost" not in text.split(". But")[0]
     assert "But compressibility comes close" in text and "(score +5,680)" in text and "removes 29%" in text
-    assert "B 18.0 kPa (now 15.5), A 60.0 kPa (now 107.0)" in text and "about 2% apart" in text
+    assert "B 16% higher (18.0 against 15.5 kPa), A 44% lower (60.0 against 107.0 kPa) in the fits to the tracked blocks" in text and "about 2% apart" in text
     assert "inclusion" not in text  # 1.9 -> 1.638 px on its own mesh: 14%, below NEAR_MISS_FRACTION
     assert d.to_json_dict()["near_misses"] == [{"effect": "compressibility", "explained": 0.287}]
     assert f"why: {text}" in d.lines()
@@ -887,7 +887,7 @@ def test_a_verdict_of_none_says_when_the_moduli_rest_on_an_effect_the_data_do_no
     assert text.startswith("No candidate effect lowers the misfit by more than its parameters cost"), text
     assert text.endswith(". The moduli rest on an assumption these measurements do not settle: with "
                          "sliding-bottom, which fits them at least as well (score -5, chi2 1,486.5 against 1,488.9), E_A "
-                         "would be 65.1 kPa (now 49.7). If the setup allows it (specimen slides on the table), "
+                         "would be 31% higher (65.1 against 49.7 kPa) in the fits to the tracked blocks. If the setup allows it (specimen slides on the table), "
                          "add it and compare the versions"), text
     assert d.to_json_dict()["unresolved"] == [{"effect": "sliding-bottom", "moduli_kPa": {"E_A_kPa": 65.11}}]
     # a located sphere is placed where the misfit is: the moduli it moves are not an assumption of the setup
@@ -900,8 +900,8 @@ def test_a_verdict_of_none_says_when_the_moduli_rest_on_an_effect_the_data_do_no
                       "slips")
     two = Diagnosis("x", base, [slide, slip2], "none", NoiseModel(0.0195, 1481, 0.25, 18), 1.0).none_text()
     assert ("assumptions these measurements do not settle: with sliding-bottom, which fits them at least as well (score -5, "
-            "chi2 1,486.5 against 1,488.9), E_A would be 65.1 kPa (now 49.7); with probe-slip, which fits them at "
-            "least as well (score -6, chi2 1,487.9 against 1,488.9), E_B would be 15.2 kPa (now 17.3). If the setup allows "
+            "chi2 1,486.5 against 1,488.9), E_A would be 31% higher (65.1 against 49.7 kPa) in the fits to the tracked blocks; with probe-slip, which fits them at "
+            "least as well (score -6, chi2 1,487.9 against 1,488.9), E_B would be 12% lower (15.2 against 17.3 kPa) in the fits to the tracked blocks. If the setup allows "
             "one of them (specimen slides on the table; probe slides on the surface), add that effect") in two, two
     # moduli within 10%, or a verdict: nothing to say
     near = Candidate("sliding-bottom", ("sliding-bottom",), {"E_B_kPa": 17.9, "E_A_kPa": 54.0}, {}, mis(1486.5), 1,
