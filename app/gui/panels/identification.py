@@ -538,6 +538,8 @@ class IdentificationPanel(Panel):
                     f = item.font()
                     f.setBold(True)
                     item.setFont(f)
+                if st.get("note"):  # e.g. a start that shared an earlier one's large-deformation fit
+                    item.setToolTip(st["note"])
                 self.starts_table.setItem(i, j, item)
 
     # ---- run ----------------------------------------------------------------------------------------
