@@ -1232,6 +1232,18 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     # meshed along its outline the same case fell 1.43x: the unbonded strip along the probe's edges,
     # different in the truth's mesh and the model's, left an error no inclusion could remove.
     assert c.misfit["displacement_excess_px"] < d.baseline.misfit["displacement_excess_px"] / 3.0, d.lines()
+    # the identification then searches the sphere's place and radius by NMI and force (place_by_identification)
+    ident = d.identified
+    placed = ident.get("inclusion", c.inclusion)
+    (hidden_name,) = hidden
+    assert ident["place_trials"] > 1 and ident["effects"] == ["inclusion"], ident
+    assert np.linalg.norm(np.array(placed["center_mm"]) - c_true) < 3.0, placed
+    # measured (2026-11-30): placed 0.8 and 1.1 mm from the hidden sphere (located: 1.4 and 1.2 mm), E_I -6.5%
+    # and -14.9% of the truth's on these coarse test meshes; on the paper-size blind seeds -4.7% and -3.7%
+    # (located: -16.4% and +27.4%), docs/model-check.md
+    if "inclusion" in ident:  # moved: the identification's cost is lower there than at the located sphere
+        assert ident["cost"]["total"] < ident["located_cost"]["total"], ident
+        assert f"{placed['name']} centred at ({placed['center_mm'][0]:.1f}" in d.identified_text(), d.identified_text()
     # forced into a near tie with probe-slip, the two are fitted together on the inclusion's mesh (the slip
     # fitted there too, without the sphere): the inclusion earns its parameters on top of the slip, and the
     # tie goes to the inclusion. Whether the slip yields is not asserted: it is a switch, with no parameter
@@ -1263,9 +1275,11 @@ def test_a_rival_place_is_meshed_and_fitted_too_and_the_better_fit_kept(tmp_path
     than the rival. Both spheres' meshes are committed (tests/data/meshes); what is
     asserted held on fresh meshes of the rival too. Short of memory, both models
     are built in turn (after the other candidates), and it says so."""
+    import app.core.diagnose as diagnose_module
     from app.core.effects import inclusion as inclusion_effect
 
     monkeypatch.setattr(inclusion_effect, "RIVAL_SHARE", 0.0)
+    monkeypatch.setattr(diagnose_module, "PLACE_MAX_TRIALS", 1)  # the identification's search: tested above
     exp = _make(tmp_path_factory, "inclusion")
     c_true = np.array(read_truth(exp.path)["hidden_regions"][0]["center_mm"], float)
     if short_of_memory:
