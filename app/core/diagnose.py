@@ -1059,7 +1059,9 @@ def _placed(problem: EffectProblem, identified: dict, say, cancel) -> dict:
     t0 = time.perf_counter()
     say("placing the inclusion by the identification (NMI and force, one fit per trial sphere)")
     sphere, res, n = place_by_identification(problem, identified["parameters"], progress=say, cancel=cancel)
-    if res is None or res.cost["total"] >= identified["cost"]["total"]:
+    located = problem.inclusion
+    if (res is None or res.cost["total"] >= identified["cost"]["total"]
+            or (sphere["center_mm"] == list(located["center_mm"]) and sphere["radius_mm"] == located["radius_mm"])):
         return {**identified, "place_trials": n}
     say(f"the inclusion placed at {_sphere_text(sphere)}")
     return {"parameters": dict(res.parameters), "cost": dict(res.cost),
