@@ -1493,11 +1493,11 @@ def place_by_identification(problem: EffectProblem, params: dict, *, max_trials:
             best[:] = [sphere, float(res.cost["total"]), res.parameters]
         return res.cost["total"]
 
-    _sphere_search(problem, params, value, lambda: n[0] < max_trials, cancel, "placing the inclusion")
-    if best[0] is None:
-        return None, None, n[0]
-    made = problem.rm.factorize(problem.theta(params))
+    made = problem.rm.factorize(problem.theta(params))  # held for the search's trials and the last fit
     try:
+        _sphere_search(problem, params, value, lambda: n[0] < max_trials, cancel, "placing the inclusion")
+        if best[0] is None:
+            return None, None, n[0]
         tp = _trial_builder(problem, params, cancel, "placing the inclusion")(best[0])
         try:
             res = fit(tp, best[2], cancel=cancel, max_evaluations=300, step=0.15)  # every parameter, there

@@ -286,8 +286,8 @@ def test_identifying_with_the_hyperelastic_effect_starts_it_at_the_linear_models
         assert ratios[0] == pytest.approx(ratios[1], rel=0.02)  # both starts' linear fits agree
     # the rule itself: within SAME_OPTIMUM_RTOL in every parameter, and only then
     a = {"E_B_kPa": 18.0, "E_A_kPa": 63.0}
-    assert em._same_optimum(problem, a, {"E_B_kPa": 18.1, "E_A_kPa": 62.5})
-    assert not em._same_optimum(problem, a, {"E_B_kPa": 18.0, "E_A_kPa": 64.0})
+    assert em._same_optimum(a, {"E_B_kPa": 18.1, "E_A_kPa": 62.5})
+    assert not em._same_optimum(a, {"E_B_kPa": 18.0, "E_A_kPa": 64.0})
 
 
 def test_the_hyperelastic_correction_is_exact_along_the_moduli_level_and_the_fit_ends_with_it(tmp_path_factory):

@@ -598,7 +598,7 @@ def _fit_level(problem: EffectProblem, params: dict, value: float, obj, cancel, 
 SAME_OPTIMUM_RTOL = 0.01
 
 
-def _same_optimum(problem: EffectProblem, a: dict, b: dict) -> bool:
+def _same_optimum(a: dict, b: dict) -> bool:
     """Whether two fits' parameters agree within SAME_OPTIMUM_RTOL (each free one)."""
     return all(abs(float(b[k]) - float(v)) <= SAME_OPTIMUM_RTOL * max(abs(float(v)), 1e-12)
                for k, v in a.items() if isinstance(v, (int, float)) and k in b)
@@ -633,7 +633,7 @@ def identify_with_effects(problem: EffectProblem, starts_kPa=(10.0, 30.0), *, fi
             finally:
                 problem.restore_hyperelastic(state)
             evals += lin.evaluations
-            same = next((r for p, r in done if _same_optimum(problem, p, lin.parameters)), None)
+            same = next((r for p, r in done if _same_optimum(p, lin.parameters)), None)
             if same is not None:  # this start's linear fit ended where an earlier one's did
                 starts.append({"start_kPa": s, "parameters": same.parameters, "cost": same.cost,
                                "evaluations": lin.evaluations,
