@@ -36,7 +36,7 @@ def errors(params: dict, truth: dict) -> str:
 
 
 def run(folder: Path) -> list[str]:
-    from app.core.diagnose import _identified_from, _placed, current_model
+    from app.core.diagnose import _identified_verdict, current_model
     from app.core.experiment import read_experiment
     from app.core.simulate import read_truth
 
@@ -53,9 +53,7 @@ def run(folder: Path) -> list[str]:
     true["nu"] = float(truth["nu"])
     t0 = time.perf_counter()
     problem = current_model(exp, effects, inclusion=c.get("inclusion") if "inclusion" in effects else None)
-    ident = _identified_from(problem, fitted, None)
-    if v == "inclusion" and "hyperelastic" not in effects:  # placed by the identification, as the diagnosis does
-        ident = _placed(problem, ident, lambda s: None, None)
+    ident = _identified_verdict(problem, v, fitted, lambda s: None, None)  # as the diagnosis identifies it
     return [folder.name, v, errors(fitted, true), errors(ident["parameters"], true), f"{time.perf_counter() - t0:.0f}"]
 
 

@@ -1051,6 +1051,15 @@ def _identified_from(problem: EffectProblem, start: dict, cancel) -> dict:
     return _identified(identify_from(problem, start, cancel=cancel), t0)
 
 
+def _identified_verdict(problem: EffectProblem, verdict: str, start: dict, say, cancel) -> dict:
+    """Candidate.identified of the verdict's model (:func:`_identified_from`), with an
+    inclusion on a linear model placed by the identification (:func:`_placed`)."""
+    identified = _identified_from(problem, start, cancel)
+    if verdict == "inclusion" and "hyperelastic" not in problem.effects:
+        identified = _placed(problem, identified, say, cancel)
+    return identified
+
+
 def _placed(problem: EffectProblem, identified: dict, say, cancel) -> dict:
     """Candidate.identified of an inclusion model with the inclusion's place and
     radius searched by the identification's objective (:func:`place_by_identification`)
@@ -1704,9 +1713,7 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     if c is not None and c.problem is not None:
         say(f"identifying the model with {verdict} (NMI and force, from its fit)")
         try:
-            c.identified = _identified_from(c.problem, c.parameters, cancel)
-            if verdict == "inclusion" and "hyperelastic" not in c.effects:
-                c.identified = _placed(c.problem, c.identified, say, cancel)
+            c.identified = _identified_verdict(c.problem, verdict, c.parameters, say, cancel)
         except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate's fit stands
             say(f"{verdict}: not identified ({exc})")
         c.problem.release(keep=problem)
