@@ -217,7 +217,10 @@ def _add_elements(data: dict, space: P2Space, indptr, indices, which: np.ndarray
                 if key not in data:
                     data[key] = np.zeros(nnz)
                 w = K[sel].ravel()
-                data[key] += np.bincount(at, weights=-w if subtract else w, minlength=nnz)
+                if which is None or len(at) > nnz // 8:
+                    data[key] += np.bincount(at, weights=-w if subtract else w, minlength=nnz)
+                else:  # a few elements (relabel): only their entries, not a pass over the whole pattern
+                    np.add.at(data[key], at, -w if subtract else w)
 
 
 def relabel(op: AffineOperator, mesh: TetMesh) -> AffineOperator:
@@ -233,7 +236,10 @@ def relabel(op: AffineOperator, mesh: TetMesh) -> AffineOperator:
     space = P2Space(mesh, op.space.points_mm, op.space.elems, op.space.grad_bary, op.space.volumes_mm3,
                     op.space.degree)
     changed = np.flatnonzero(old.labels != mesh.labels)
-    data = {k: v.copy() for k, v in op.data.items()}
+    # only the regions that lose or gain tets get new value arrays; the others are
+    # shared with ``op`` (nothing changes an operator's arrays after it is made)
+    touched = {int(r) for r in np.concatenate([old.labels[changed], mesh.labels[changed]])}
+    data = {k: (v.copy() if k[0] in touched else v) for k, v in op.data.items()}
     _add_elements(data, space, op.indptr, op.indices, changed, old.labels, subtract=True)
     _add_elements(data, space, op.indptr, op.indices, changed, mesh.labels)
     for r in set(int(r) for r, _ in data) - set(int(r) for r in np.unique(mesh.labels)):  # regions left empty

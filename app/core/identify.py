@@ -384,10 +384,10 @@ class Problem:
             fisher = fisher + SF.T @ SF / sigma_F**2
         ident = Identifiability.from_fisher(names, fisher, Su, SF, sigma_F, self.cost_kind)
         try:
-            cov, unseen = self.data_covariance(params, unseen=[np.asarray(v) for v in ident.null_directions])
+            cov, unseen, falling = self.data_covariance(params, unseen=[np.asarray(v) for v in ident.null_directions])
         except (np.linalg.LinAlgError, ValueError):  # too few blocks, a degenerate Hessian
             return ident
-        return ident.with_data_covariance(cov, unseen)
+        return ident.with_data_covariance(cov, unseen, falling)
 
     # --- standard errors from the data --------------------------------------------
     def _jackknife_groups(self, pair) -> tuple:
@@ -444,7 +444,9 @@ class Problem:
         overall level with the NMI-only cost: the sensitivities' null space); the
         Hessian is inverted on their complement (finite differences leave a few
         percent of curvature along them). Returns (covariance within the directions
-        the cost sees, the unseen directions plus any the Hessian shows flat)."""
+        the cost sees, the unseen directions plus any the Hessian shows flat or
+        falling, the falling ones alone: directions along which the cost still
+        decreases, so that ``params`` is not a minimum of it)."""
         x0 = np.log(self.theta(self.complete(params)))
         n, h = len(x0), SANDWICH_STEP
         E = np.eye(n) * h
@@ -485,7 +487,8 @@ class Problem:
         good = w > 1e-6 * w.max()
         Bq = B @ Q
         Hinv = (Bq[:, good] / w[good]) @ Bq[:, good].T
-        return Hinv @ V @ Hinv, list(N) + [Bq[:, i] for i in np.flatnonzero(~good)]
+        falling = [Bq[:, i] for i in np.flatnonzero(w < -1e-6 * w.max())]
+        return Hinv @ V @ Hinv, list(N) + [Bq[:, i] for i in np.flatnonzero(~good)], falling
 
     def _observables(self, theta):
         a = self.rm.coords(theta)
@@ -511,6 +514,9 @@ class Identifiability:
     # modulus ratio to the first region's; None when not computed
     standard_error_rel_data: dict | None = None
     ratio_standard_error_rel_data: dict | None = None
+    # directions of the log-moduli along which the cost still falls at the reported
+    # point (a negative curvature of its Hessian): not a minimum there
+    falling_directions: list = field(default_factory=list)
 
     @classmethod
     def from_fisher(cls, names, fisher, Su, SF, sigma_F, cost_kind):
@@ -541,15 +547,23 @@ class Identifiability:
                                   for i, n in enumerate(names)},
                    corr, flags, img, frc, [v.tolist() for v in null], noise)
 
-    def with_data_covariance(self, cov: np.ndarray, unseen=()) -> "Identifiability":
+    def with_data_covariance(self, cov: np.ndarray, unseen=(), falling=()) -> "Identifiability":
         """This report with standard errors from the data (``cov``: covariance of the
         log-moduli within the directions the cost sees; ``unseen``: the others, along
-        which the variance is infinite): they become the flags' basis, and the ratios
-        to the first region's modulus get theirs."""
+        which the variance is infinite; ``falling``: those of them along which the
+        cost still decreases): they become the flags' basis, and the ratios to the
+        first region's modulus get theirs. A parameter along a falling direction is
+        flagged as such: no standard error means something there, because the
+        point is not a minimum of the cost (a model the data do not follow, whose
+        fit stopped on a compromise, e.g. large deformation fitted to a linear
+        specimen)."""
         from dataclasses import replace
 
+        def touches(direction, among):
+            return any(abs(float(np.dot(direction, u))) > 1e-3 for u in among)
+
         def se_of(direction):
-            if any(abs(float(np.dot(direction, u))) > 1e-3 for u in unseen):
+            if touches(direction, unseen):
                 return float("inf")
             return float(np.sqrt(max(float(direction @ cov @ direction), 0.0)))
 
@@ -561,14 +575,17 @@ class Identifiability:
         for n, v in data.items():
             if flags[n].startswith("unconstrained"):
                 continue
-            if not np.isfinite(v) or v > 0.25:
+            if touches(np.eye(len(self.names))[self.names.index(n)], falling):
+                flags[n] = "not at a minimum of the cost: it still falls along a direction involving this modulus"
+            elif not np.isfinite(v) or v > 0.25:
                 flags[n] = f"weakly constrained by the data (+/-{100 * v:.0f}%)" if np.isfinite(v) else \
                     "not constrained by the data"
             elif v > 0.05:
                 flags[n] = f"ok, within +/-{100 * v:.0f}% (one standard error)"
             else:
                 flags[n] = "ok"
-        return replace(self, standard_error_rel_data=data, ratio_standard_error_rel_data=ratios, flags=flags)
+        return replace(self, standard_error_rel_data=data, ratio_standard_error_rel_data=ratios, flags=flags,
+                       falling_directions=[np.asarray(u, float).tolist() for u in falling])
 
     def lines(self) -> list[str]:
         out = [f"noise model: {self.noise_model}"]
@@ -587,6 +604,11 @@ class Identifiability:
                        f"and the force by {self.force_sensitivity_N[n]:.3f} N; {self.flags[n]}")
         for r, v in (self.ratio_standard_error_rel_data or {}).items():
             out.append(f"ratio {r}: +/-{100 * v:.1f}% from the data" if np.isfinite(v) else f"ratio {r}: undetermined")
+        for v in self.falling_directions:
+            out.append("the cost still falls when the log-moduli move along (" + ", ".join(
+                f"{n} {x:+.2f}" for n, x in zip(self.names, v) if abs(x) > 1e-3)
+                + "), either way: this is not a minimum, so the standard errors involving it are undetermined; "
+                "the fit settled on a compromise, which happens when the model is not the one the data follow")
         for v in self.null_directions:
             if np.allclose(np.abs(v), abs(v[0]), atol=1e-3):
                 out.append("the images cannot tell the overall stiffness level (all moduli scaled together): "
@@ -608,7 +630,7 @@ class Identifiability:
                 "ratio_standard_error_rel_data": finite(self.ratio_standard_error_rel_data),
                 "flags": self.flags, "image_sensitivity_px": self.image_sensitivity_px,
                 "force_sensitivity_N": self.force_sensitivity_N, "correlation": self.correlation.tolist(),
-                "noise_model": self.noise_model}
+                "falling_directions": self.falling_directions, "noise_model": self.noise_model}
 
 
 @dataclass

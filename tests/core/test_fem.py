@@ -216,6 +216,18 @@ def test_relabelled_operator_equals_the_relabelled_mesh_assembled_anew():
     assert np.array_equal(new.indptr, ref.indptr) and np.array_equal(new.indices, ref.indices)
     assert np.array_equal(new.space.labels, three.labels) and new.space.mesh is three
     assert np.array_equal(op.space.labels, labels)  # the operator relabelled is left as it was
+    # a few tets of A alone (an inclusion's trial sphere): B's arrays are shared, not
+    # copied, and only the moved tets' entries are touched; the result is still the
+    # assembly anew, and the operator relabelled keeps its values
+    before = {k: v.copy() for k, v in op.data.items()}
+    dist = np.linalg.norm(centroids - [8.0, 5.0, 4.0], axis=1)
+    few = (labels == 1) & (dist <= np.sort(dist[labels == 1])[3])
+    small = replace(two, labels=np.where(few, 2, labels).astype(labels.dtype), region_names=("B", "A", "I"))
+    new, ref = relabel(op, small), assemble(p2_space(small))
+    assert few.sum() == 4 and new.data[(0, "mu")] is op.data[(0, "mu")] and new.data[(1, "mu")] is not op.data[(1, "mu")]
+    for key in ref.data:
+        assert np.abs(new.data[key] - ref.data[key]).max() < 1e-12 * scale, key
+    assert all(np.array_equal(op.data[k], v) for k, v in before.items())
     emptied = relabel(op, replace(two, labels=np.ones_like(labels)))
     assert set(emptied.data) == {(1, "mu"), (1, "lam")}
     ones = assemble(p2_space(replace(two, labels=np.ones_like(labels))))

@@ -81,6 +81,38 @@ def test_nmi_cost_recovers_the_ratio_but_not_the_level(case):
     assert 0.002 < ident.ratio_standard_error_rel_data["E_A_kPa/E_B_kPa"] < 0.1, ident.lines()
 
 
+def test_a_point_that_is_not_a_minimum_is_reported_as_one(case, monkeypatch):
+    """Where a fit of a model the data do not follow stops on a compromise, the cost
+    can still fall along some direction (a saddle): the sandwich has no curvature to
+    invert there. The report says so, names the direction, and keeps the standard
+    error of the modulus the cost does settle. The cost is replaced by a saddle in
+    log-moduli, falling along E_A, with a jackknife scatter per group of blocks."""
+    _, joint, _ = case
+    params = {"E_B_kPa": 18.0, "E_A_kPa": 63.0}
+    names = joint.parameter_names
+    x0 = np.log(joint.theta(joint.complete(params)))
+    b, a = names.index("E_B_kPa"), names.index("E_A_kPa")
+    tilts = np.random.default_rng(0).normal(scale=0.05, size=(16, len(x0)))
+
+    def saddle(x):
+        d = np.asarray(x) - x0
+        image = 2.0 * d[b] ** 2 - 0.5 * d[a] ** 2
+        return image, image + tilts @ d, 0.0, np.zeros(len(joint.log_F))
+
+    monkeypatch.setattr(joint, "_cost_parts", saddle)
+    ident = joint.identifiability(params)
+    data = ident.standard_error_rel_data
+    assert np.isfinite(data["E_B_kPa"]) and data["E_B_kPa"] > 0, ident.lines()
+    assert not np.isfinite(data["E_A_kPa"]), ident.lines()
+    assert ident.flags["E_A_kPa"].startswith("not at a minimum of the cost"), ident.flags
+    assert not ident.flags["E_B_kPa"].startswith("not at a minimum"), ident.flags
+    (v,) = ident.falling_directions
+    assert abs(abs(v[a]) - 1) < 1e-6 and abs(v[b]) < 1e-6, v
+    said = [line for line in ident.lines() if line.startswith("the cost still falls when the log-moduli move")]
+    assert len(said) == 1 and "E_A_kPa" in said[0] and "E_B_kPa" not in said[0], said
+    assert ident.to_dict()["falling_directions"] == ident.falling_directions
+
+
 def test_images_alone_fix_only_ratios(case):
     """Displacement control: scaling every modulus leaves the warp and NMI unchanged,
     while the force scales with them."""
