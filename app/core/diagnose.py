@@ -59,9 +59,10 @@ from app.core.effects.inclusion import huber_loss
 from app.core.effects.model import EffectProblem, FitResult, fit, fit_hyperelastic, identify_with_effects
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import relabel
+from app.core.forward import build_model
 from app.core.identify import force_noise_N
 from app.core.geometry import paint_labels
-from app.core.mesh import MeshSettings, auto_settings
+from app.core.mesh import MeshSettings, auto_settings, specimen_mesh
 
 HUBER_C = 2.0
 
@@ -1425,6 +1426,27 @@ def _sphere_search(problem: EffectProblem, params: dict, value, more, cancel, wh
             problem.rm.release()
 
 
+def _sphere_labels(mesh, exp, name: str):
+    """``labels(sphere)``: ``mesh``'s tet labels with the tets whose centroid lies in
+    ``sphere`` given to region ``name`` (the mesh's inclusion) and every other tet
+    to the described region of ``exp`` it lies in; None for a sphere that holds no
+    tet (or a radius under 0.5 mm)."""
+    k = list(mesh.region_names).index(name)
+    described = tuple(r for r in exp.specimen.regions if r.name != name)
+    centroids = mesh.points_mm[mesh.tets].mean(axis=1)
+    # each tet's described region, as the mesh numbers its regions
+    host = np.array([mesh.region_names.index(r.name) for r in described])[paint_labels(centroids, described)]
+
+    def labels(sphere: dict) -> np.ndarray | None:
+        r = float(sphere["radius_mm"])
+        inside = np.linalg.norm(centroids - np.array(sphere["center_mm"]), axis=1) < r
+        if r < 0.5 or not inside.any():
+            return None
+        return np.where(inside, k, host).astype(mesh.labels.dtype)
+
+    return labels
+
+
 def _trial_builder(problem: EffectProblem, params: dict, cancel, what: str):
     """``build(sphere)``: ``problem``'s model (with the ``inclusion`` effect, fitted
     at ``params``) with its inclusion moved to ``sphere`` on the same mesh (the
@@ -1439,19 +1461,14 @@ def _trial_builder(problem: EffectProblem, params: dict, cancel, what: str):
     from app.core.effects.inclusion import inclusion_region, inside_specimen
 
     mesh, exp = problem.mesh, problem.exp
-    k = list(mesh.region_names).index(inc["name"])
-    described = tuple(r for r in exp.specimen.regions if r.name != inc["name"])
-    centroids = mesh.points_mm[mesh.tets].mean(axis=1)
-    # each tet's described region, as the mesh numbers its regions
-    host = np.array([mesh.region_names.index(r.name) for r in described])[paint_labels(centroids, described)]
+    labels_for = _sphere_labels(mesh, exp, inc["name"])
     size = np.asarray(exp.specimen.size_mm, float)
 
     def build(sphere: dict) -> EffectProblem | None:
-        r = float(sphere["radius_mm"])
-        inside = np.linalg.norm(centroids - np.array(sphere["center_mm"]), axis=1) < r
-        if r < 0.5 or not inside.any() or not inside_specimen(sphere["center_mm"], r, size):
+        labels = labels_for(sphere)
+        if labels is None or not inside_specimen(sphere["center_mm"], float(sphere["radius_mm"]), size):
             return None
-        relabelled = replace(mesh, labels=np.where(inside, k, host).astype(mesh.labels.dtype))
+        relabelled = replace(mesh, labels=labels)
         return EffectProblem.from_experiment(
             replace(exp, specimen=exp.specimen.with_region(inclusion_region(sphere))), effects=problem.effects,
             mesh=relabelled, operator=relabel(problem.fe.op, relabelled), frames=problem.frames,
@@ -2361,11 +2378,34 @@ class ModelCheck:
         """The model with ``effects`` for this check's experiment (sharing what it can
         with the current one). With ``parameters`` (a fitted model rebuilt), a
         hyperelastic correction is refreshed at its moduli, where the fit left it."""
+        kw = {}
+        if inclusion is not None and inclusion.get("meshed_at"):
+            kw = self._placed_mesh(inclusion, progress, cancel)
         problem = current_model(self.exp, effects, mesh_settings=self.mesh_settings, inclusion=inclusion,
-                                base=self.problem, progress=progress, cancel=cancel, nu=self.nu)
+                                base=self.problem, progress=progress, cancel=cancel, nu=self.nu, **kw)
         if parameters is not None and "hyperelastic" in effects:
             problem.refresh_hyperelastic(parameters, progress, cancel)
         return problem
+
+    def _placed_mesh(self, inclusion: dict, progress, cancel) -> dict:
+        """The mesh (and its stiffness terms) of an inclusion the identification
+        placed (:meth:`add`): the located sphere's mesh (``inclusion['meshed_at']``;
+        the mesh cache gives back the one the version was fitted on), with the tets
+        in the placed sphere relabelled, as when it was added. Meshing the placed
+        sphere instead would make another model than the one the saved parameters
+        and errors belong to."""
+        from app.core.effects.inclusion import inclusion_region
+
+        at = {"name": inclusion["name"], **inclusion["meshed_at"]}
+        exp = replace(self.exp, specimen=self.exp.specimen.with_region(inclusion_region(at)))
+        settings = self.mesh_settings if self.mesh_settings is not None else located_inclusion_settings(exp)
+        mesh = specimen_mesh(exp, settings, progress=progress, cancel=cancel)
+        labels = _sphere_labels(mesh, exp, inclusion["name"])(inclusion)
+        if labels is None:
+            raise ElastoidError(f"the inclusion {_sphere_text(inclusion)} holds no tet of the mesh it was placed on")
+        (progress or (lambda s: None))("assembling the finite-element model")
+        relabelled = replace(mesh, labels=labels)
+        return {"mesh": relabelled, "operator": relabel(build_model(mesh).op, relabelled)}
 
     def _problem(self, index: int, progress=None, cancel=None) -> EffectProblem:
         """Version ``index``'s model (rebuilt for a restored check)."""
@@ -2430,6 +2470,9 @@ class ModelCheck:
             c.identified = _identified_from(c.problem, c.parameters, cancel)
         if placed:  # placed by the identification: on the candidate's mesh, the tets in the sphere relabelled
             say(f"moving the inclusion where the identification placed it: {_sphere_text(placed)}")
+            # the sphere keeps the place whose mesh it sits on, for a session read back (see _build)
+            placed = {**placed, "meshed_at": c.inclusion.get("meshed_at")
+                      or {k: c.inclusion[k] for k in ("center_mm", "radius_mm")}}
             at = c.identified["parameters"]
             made = c.problem.rm.factorize(c.problem.theta(at))  # for the moved model's training to borrow
             try:

@@ -5,6 +5,8 @@ workers (``--dist loadfile`` sends a file to one worker) share the
 diagnoses; the experiments and meshes are the same committed ones (see
 test_diagnose.py)."""
 
+import json
+
 import pytest
 
 from app.core.diagnose import ModelCheck, diagnose
@@ -165,6 +167,18 @@ def test_a_slip_and_an_inclusion_that_hide_each_other_are_found_by_following_the
     assert 1 < second.identified["place_trials"] <= 3, second.identified  # the placement ran, within its cap
     v = mc.add()
     assert set(v.effects) == {"probe-slip", "inclusion"}
+    # the identification moved the sphere: the version sits on the located sphere's mesh, relabelled, and
+    # a session read back rebuilds that same model (meshing the moved sphere would make another one)
+    assert v.inclusion["center_mm"] != c.inclusion["center_mm"], (v.inclusion, c.inclusion)
+    assert v.inclusion["meshed_at"] == {k: c.inclusion[k] for k in ("center_mm", "radius_mm")}, v.inclusion
+    back = ModelCheck.restored(exp, json.loads(json.dumps(mc.state())), mesh_settings=ID_MESH)
+    live, rebuilt = mc.problem, back.problem
+    assert rebuilt.mesh.region_names == live.mesh.region_names, rebuilt.mesh.region_names
+    for name in ("points_mm", "tets", "labels"):
+        assert np.array_equal(getattr(rebuilt.mesh, name), getattr(live.mesh, name)), name
+    assert np.allclose(rebuilt.model_force_N(v.parameters), live.model_force_N(v.parameters), rtol=1e-4), \
+        "the rebuilt model predicts another force"
+    assert back.history.current_version.inclusion == v.inclusion
     errs = mc.history.errors()
     assert errs["displacement_excess_px"][-1] < errs["displacement_excess_px"][0] / 3.0, errs
     truth = read_truth(exp.path)["moduli_kPa"]
