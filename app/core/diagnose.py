@@ -919,6 +919,12 @@ class Diagnosis:
         others = ", ".join(f"{k} {v:.3g}" for k, v in p.items() if not k.endswith("_kPa") and isinstance(v, float))
         inc = self.identified.get("inclusion")
         where = f"; {inc['name']} centred at {_sphere_text(inc)}" if inc else ""
+        spread = self.identified.get("place_spread")
+        if inc and spread and spread["trials"] > 1:
+            (e0, e1), (r0, r1) = spread["E_kPa"], spread["radius_mm"]
+            where += (f" ({spread['trials']} of the {spread['of']} trial spheres fit the frames as well, "
+                      f"radius {r0:.1f}-{r1:.1f} mm: E_{inc['name']} {e0:.1f}-{e1:.1f} kPa, as size and "
+                      f"stiffness trade off)")
         return moduli + (f"; {others}" if others else "") + where
 
     def state(self) -> dict:
@@ -1068,7 +1074,8 @@ def _placed(problem: EffectProblem, identified: dict, say, cancel) -> dict:
     trial's parameters and cost, its sphere as ``inclusion``, the trials made."""
     t0 = time.perf_counter()
     say("placing the inclusion by the identification (NMI and force, one fit per trial sphere)")
-    sphere, res, n = place_by_identification(problem, identified["parameters"], progress=say, cancel=cancel)
+    sphere, res, n, spread = place_by_identification(problem, identified["parameters"], progress=say,
+                                                     cancel=cancel)
     located = problem.inclusion
     if (res is None or res.cost["total"] >= identified["cost"]["total"]
             or (sphere["center_mm"] == list(located["center_mm"]) and sphere["radius_mm"] == located["radius_mm"])):
@@ -1076,7 +1083,7 @@ def _placed(problem: EffectProblem, identified: dict, say, cancel) -> dict:
     say(f"the inclusion placed at {_sphere_text(sphere)}")
     return {"parameters": dict(res.parameters), "cost": dict(res.cost),
             "seconds": round(identified["seconds"] + time.perf_counter() - t0, 2), "inclusion": sphere,
-            "place_trials": n, "located_cost": dict(identified["cost"])}
+            "place_trials": n, "located_cost": dict(identified["cost"]), "place_spread": spread}
 
 
 def identify_from(problem: EffectProblem, start: dict, *, cancel=None, max_evaluations: int = 300) -> FitResult:
@@ -1489,12 +1496,13 @@ PLACE_MAX_TRIALS = 16
 
 
 def place_by_identification(problem: EffectProblem, params: dict, *, max_trials: int | None = None,
-                            progress=None, cancel=None) -> tuple[dict, FitResult, int]:
+                            progress=None, cancel=None) -> tuple[dict, FitResult, int, dict | None]:
     """The located inclusion's place and radius searched by the identification's
     own objective (NMI of the whole frames and the force, as ``identify``), the
     moduli refitted at each trial sphere (:func:`_sphere_search`), from
     ``params`` (the model identified at the located sphere). Returns (the best
-    sphere, its fit, the number of trials).
+    sphere, its fit, the number of trials, the spread of the trials the frames
+    do not tell from the best: :func:`_place_spread`).
 
     The scan places the sphere from the tracked blocks' residuals, and the place
     it finds is a few millimetres off (0.9-5.2 mm on the paper-size spheres in
@@ -1507,6 +1515,7 @@ def place_by_identification(problem: EffectProblem, params: dict, *, max_trials:
     best: list = [None, math.inf, None]
     n = [0]
     own = f"E_{problem.inclusion['name']}_kPa"
+    trials: list[dict] = []
 
     def value(tp: EffectProblem, sphere: dict) -> float:
         # the inclusion's modulus alone: the described regions' moved by 1.3% at most between the trials of
@@ -1517,13 +1526,15 @@ def place_by_identification(problem: EffectProblem, params: dict, *, max_trials:
             f"{res.cost['force_rms_N']:.4f} N, {own[:-4]} {res.parameters[own]:.1f} kPa")
         if res.cost["total"] < best[1]:
             best[:] = [sphere, float(res.cost["total"]), res.parameters]
+        trials.append({"sphere": sphere, "E_kPa": float(res.parameters[own]), "cost": float(res.cost["total"]),
+                       "groups": _cost_without_groups(tp, res.parameters)})
         return res.cost["total"]
 
     made = problem.rm.factorize(problem.theta(params))  # held for the search's trials and the last fit
     try:
         _sphere_search(problem, params, value, lambda: n[0] < max_trials, cancel, "placing the inclusion")
         if best[0] is None:
-            return None, None, n[0]
+            return None, None, n[0], None
         tp = _trial_builder(problem, params, cancel, "placing the inclusion")(best[0])
         try:
             res = fit(tp, best[2], cancel=cancel, max_evaluations=300, step=0.15)  # every parameter, there
@@ -1532,7 +1543,52 @@ def place_by_identification(problem: EffectProblem, params: dict, *, max_trials:
     finally:
         if made:
             problem.rm.release()
-    return best[0], res, n[0]
+    return best[0], res, n[0], _place_spread(trials, float(res.parameters[own]))
+
+
+def _cost_without_groups(problem: EffectProblem, params: dict) -> np.ndarray | None:
+    """The identification's cost at ``params`` with each jackknife group of ROI
+    blocks left out in turn (the image term's, plus the force term; see
+    :meth:`app.core.identify.Problem.data_covariance`); None when the ROI holds
+    too few blocks for the groups."""
+    try:
+        _, groups, force, _ = problem.cost_parts(problem.complete(params))
+    except ValueError:
+        return None
+    return np.asarray(groups, float) + force
+
+
+# a trial sphere the frames do not tell from the best: its cost is within this many
+# jackknife standard errors of the best's (the speckle of separate blocks taken as
+# independent, as the standard errors from the data)
+PLACE_SPREAD_SIGMAS = 2.0
+
+
+def _place_spread(trials: list[dict], final_kPa: float) -> dict | None:
+    """How far the inclusion's modulus moves among the trial spheres the frames
+    do not tell from the best one: those whose cost exceeds the best's by at most
+    PLACE_SPREAD_SIGMAS jackknife standard errors of the difference (delete-a-group
+    over the same groups of ROI blocks as the standard errors from the data). A
+    sphere's size and stiffness trade off in the frames: on a blind paper-size
+    phantom with a 6 kPa sphere of radius 6 mm in 18 kPa tissue, the best trial had
+    radius 8.5 mm and 11 kPa, and spheres of 6.4 mm at 5 kPa fitted nearly as
+    well. Returns {"trials", "of", "E_kPa": [low, high], "radius_mm": [low,
+    high]} (the identified value ``final_kPa`` inside the range), or None
+    without trials."""
+    trials = [t for t in trials if t["groups"] is not None]
+    if not trials:
+        return None
+    b = min(trials, key=lambda t: t["cost"])
+    close = []
+    for t in trials:
+        d = t["groups"] - b["groups"]
+        k = len(d)
+        se = math.sqrt(max((k - 1) / k * float(np.sum((d - d.mean()) ** 2)), 0.0))
+        if t is b or t["cost"] - b["cost"] <= PLACE_SPREAD_SIGMAS * se:
+            close.append(t)
+    E = [t["E_kPa"] for t in close] + [final_kPa]
+    r = [float(t["sphere"]["radius_mm"]) for t in close]
+    return {"trials": len(close), "of": len(trials), "E_kPa": [min(E), max(E)], "radius_mm": [min(r), max(r)]}
 
 
 def _host(problem: EffectProblem, center_mm) -> str:

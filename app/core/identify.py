@@ -418,7 +418,10 @@ class Problem:
         """At log-moduli ``x``, with the smooth NMI estimator: (image cost of all
         pixels, image cost with each group of blocks left out (G,), force cost, the
         model's force over the log)."""
-        params = self.complete(dict(zip(self.parameter_names, np.exp(x))))
+        return self.cost_parts(self.complete(dict(zip(self.parameter_names, np.exp(x)))))
+
+    def cost_parts(self, params: dict):
+        """:meth:`_cost_parts` at parameters ``params`` (every one, by name)."""
         a = self.rm.coords(self.theta(params))
         full, parts = [], []
         for pair in self.pairs:

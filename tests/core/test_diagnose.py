@@ -1247,6 +1247,13 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     if "inclusion" in ident:  # moved: the identification's cost is lower there than at the located sphere
         assert ident["cost"]["total"] < ident["located_cost"]["total"], ident
         assert f"{placed['name']} centred at ({placed['center_mm'][0]:.1f}" in d.identified_text(), d.identified_text()
+        # the spheres the frames do not tell from the placed one, and the inclusion's modulus among them
+        spread, own = ident["place_spread"], ident["parameters"][f"E_{placed['name']}_kPa"]
+        assert 1 <= spread["trials"] <= spread["of"] == ident["place_trials"], spread
+        assert spread["E_kPa"][0] <= own <= spread["E_kPa"][1], (own, spread)
+        assert spread["radius_mm"][0] <= placed["radius_mm"] <= spread["radius_mm"][1], (placed, spread)
+        assert ("trial spheres fit the frames as well" in d.identified_text()) == (spread["trials"] > 1), \
+            d.identified_text()
     # forced into a near tie with probe-slip, the two are fitted together on the inclusion's mesh (the slip
     # fitted there too, without the sphere): the inclusion earns its parameters on top of the slip, and the
     # tie goes to the inclusion. Whether the slip yields is not asserted: it is a switch, with no parameter
@@ -1265,6 +1272,29 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     assert not tb.yields["inclusion"], why
     assert choose_verdict(tied, tb) == "inclusion", why
     assert tb.joint.parameters[f"E_{c.inclusion['name']}_kPa"] > tb.joint.parameters["E_B_kPa"], tb.joint.parameters
+
+
+def test_the_placement_spread_holds_the_trials_the_frames_do_not_tell_apart():
+    """_place_spread: a trial is kept beside the best when its cost exceeds the
+    best's by at most two jackknife standard errors of the difference (over the
+    same groups of blocks), and the inclusion's modulus is reported over them."""
+    from app.core.diagnose import PLACE_SPREAD_SIGMAS, _place_spread
+
+    rng = np.random.default_rng(1)
+    base = rng.normal(size=16)
+
+    def trial(r, E, cost, scatter):  # its cost with each group left out: the best's, shifted and scattered
+        groups = base + (cost - 0.0) + scatter * rng.standard_normal(16)
+        return {"sphere": {"radius_mm": r}, "E_kPa": E, "cost": cost, "groups": groups}
+
+    best = {"sphere": {"radius_mm": 6.0}, "E_kPa": 6.0, "cost": 0.0, "groups": base.copy()}
+    near = trial(7.5, 9.0, 0.01, 0.05)  # 0.01 above, the difference's standard error about 0.2: kept
+    far = trial(9.5, 14.0, 0.01, 1e-4)  # as far above, but the groups agree on it: told apart
+    unknown = {"sphere": {"radius_mm": 3.0}, "E_kPa": 1.0, "cost": 0.001, "groups": None}  # too few blocks
+    spread = _place_spread([best, near, far, unknown], 6.5)
+    assert PLACE_SPREAD_SIGMAS == 2.0
+    assert spread == {"trials": 2, "of": 3, "E_kPa": [6.0, 9.0], "radius_mm": [6.0, 7.5]}, spread
+    assert _place_spread([unknown], 1.0) is None and _place_spread([], 1.0) is None
 
 
 @pytest.mark.parametrize("short_of_memory", [False, True])
