@@ -224,7 +224,12 @@ def test_identify_refines_the_located_inclusion_when_asked(tmp_path_factory, mon
     from app.core.simulate import read_truth
     from tests.core import synthetic
 
+    from app.core import diagnose as diagnose_module
+
     monkeypatch.setattr(cli, "_mesh_settings", lambda args, exp: synthetic.DIAGNOSE_ID_MESH)
+    # the search's first round (six trials: each direction once); its full search is tested in
+    # tests/core/test_diagnose.py, and a shorter search finds less, so the located sphere is kept all the more
+    monkeypatch.setattr(diagnose_module, "REFINE_MAX_TRIALS", 6)
     exp = synthetic.diagnose_experiment(tmp_path_factory, "inclusion")
     truth = read_truth(exp.path)
     dest = exp.path.parent / "result.json"

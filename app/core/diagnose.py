@@ -1264,6 +1264,8 @@ REFINE_MIN_STEP_MM = 0.4
 # (docs/model-check.md, "The inclusion locator")
 REFINE_NEAR_FACTOR = 1.5
 REFINE_ROM_TOL = 1e-5
+# the refinement's search (the Model check's "Refine the inclusion's place"): at most this many trial spheres
+REFINE_MAX_TRIALS = 16
 # a search that finds chi2 lower by less than this fraction makes no new version
 # (see refine_refusal): fresh meshes of one sphere spread by 1.3-5.8% of chi2 at
 # paper size (median 4.4%); on seed 13's test phantom a find of 2.9% (the sphere
@@ -1361,7 +1363,7 @@ class InclusionTrial:
     misfit: dict
 
 
-def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, max_trials: int = 16,
+def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, max_trials: int | None = None,
                      max_evaluations: int = 200, progress=None, cancel=None) -> list[InclusionTrial]:
     """Where the inclusion of ``problem`` (a model with the ``inclusion`` effect,
     fitted at ``params``) fits the measurements best: a compass search over its
@@ -1369,6 +1371,7 @@ def refine_inclusion(problem: EffectProblem, params: dict, tracked, noise, *, ma
     refitted by maximum likelihood at each trial. Returns the trials in the order
     tried, the starting sphere first; the best is min(trials, key=chi2)."""
     say = progress or (lambda s: None)
+    max_trials = REFINE_MAX_TRIALS if max_trials is None else max_trials
     trials: list[InclusionTrial] = []
 
     def value(tp: EffectProblem, sphere: dict) -> float:
@@ -2542,7 +2545,7 @@ class ModelCheck:
         return self._add_version(c.problem, c.identified["parameters"], c.identified["cost"], f"added {effect}",
                                  c.inclusion, support_warning(d, c, self.history.current))
 
-    def refine_inclusion(self, *, max_trials: int = 16, progress=None, cancel=None) -> ModelVersion:
+    def refine_inclusion(self, *, max_trials: int | None = None, progress=None, cancel=None) -> ModelVersion:
         """Move and resize the current version's inclusion to where it fits the
         measurements best (:func:`refine_inclusion`, every trial on the current
         mesh), mesh it there as a region and refit the moduli by maximum
@@ -2589,7 +2592,7 @@ class ModelCheck:
 
 
 def refine_located_inclusion(exp, effects, inclusion: dict, *, mesh_settings=None, nu: float = 0.49,
-                             max_trials: int = 16, progress=None, cancel=None) -> dict:
+                             max_trials: int | None = None, progress=None, cancel=None) -> dict:
     """The Model check's "Refine the inclusion's place" for a batch (``elastoid
     identify --effects inclusion --refine-inclusion``): the model with the other
     ``effects`` is identified (the speckle tracked at it), then with ``inclusion``

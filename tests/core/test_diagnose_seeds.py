@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from app.core.diagnose import ModelCheck, diagnose
+from app.core.diagnose import ModelCheck, ModelHistory, diagnose
 from app.core.effects import EFFECT_IDS
 from app.core.simulate import read_truth
 from tests.core.synthetic import DIAGNOSE_FAST as FAST
@@ -171,14 +171,19 @@ def test_a_slip_and_an_inclusion_that_hide_each_other_are_found_by_following_the
     # a session read back rebuilds that same model (meshing the moved sphere would make another one)
     assert v.inclusion["center_mm"] != c.inclusion["center_mm"], (v.inclusion, c.inclusion)
     assert v.inclusion["meshed_at"] == {k: c.inclusion[k] for k in ("center_mm", "radius_mm")}, v.inclusion
-    back = ModelCheck.restored(exp, json.loads(json.dumps(mc.state())), mesh_settings=ID_MESH)
-    live, rebuilt = mc.problem, back.problem
+    # what ModelCheck.restored does for the current version (_problem -> _build), from the version as a session
+    # file keeps it; a fresh check, so nothing of this one's models is shared
+    saved = ModelHistory.from_json_dict(json.loads(json.dumps(mc.history.to_json_dict()))).current_version
+    assert saved.inclusion == v.inclusion
+    live = mc.problem
+    fresh = ModelCheck(exp, mesh_settings=ID_MESH)
+    rebuilt = fresh._build(saved.effects, saved.inclusion, None, None, saved.parameters)
     assert rebuilt.mesh.region_names == live.mesh.region_names, rebuilt.mesh.region_names
     for name in ("points_mm", "tets", "labels"):
         assert np.array_equal(getattr(rebuilt.mesh, name), getattr(live.mesh, name)), name
     assert np.allclose(rebuilt.model_force_N(v.parameters), live.model_force_N(v.parameters), rtol=1e-4), \
         "the rebuilt model predicts another force"
-    assert back.history.current_version.inclusion == v.inclusion
+    rebuilt.release()
     errs = mc.history.errors()
     assert errs["displacement_excess_px"][-1] < errs["displacement_excess_px"][0] / 3.0, errs
     truth = read_truth(exp.path)["moduli_kPa"]
