@@ -23,6 +23,7 @@ from xml.etree import ElementTree as ET
 
 import numpy as np
 
+from app.core.identify import percent_text
 from app.core.mesh import TetMesh
 
 
@@ -325,7 +326,7 @@ def write_report_html(path: str | Path, *, experiment, parameters: dict | None, 
     rows = []
     for name, val in (parameters or {}).items():
         s = se.get(name)
-        s_txt = "undetermined" if s is None or not np.isfinite(s) else f"&plusmn;{100 * s:.1f}%"
+        s_txt = "undetermined" if s is None or not np.isfinite(s) else f"&plusmn;{percent_text(s)}"
         region = name[2:-4] if name.startswith("E_") and name.endswith("_kPa") else None
         r_txt = f"{ref[region]:.1f}" if region in ref else "&ndash;"
         rows.append(f"<tr><td>{e(name)}</td><td>{val:.2f}</td><td>{s_txt}</td><td>{r_txt}</td></tr>")

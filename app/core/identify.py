@@ -500,6 +500,14 @@ class Problem:
         return u, F
 
 
+def percent_text(rel: float) -> str:
+    """A relative error as a percentage: one decimal, or two significant digits
+    under 0.1% (the demo's E_B, 0.024% from the noise model, printed as "0.0%" read as no
+    error at all)."""
+    v = 100.0 * float(rel)
+    return f"{v:.2g}%" if 0 < v < 0.1 else f"{v:.1f}%"
+
+
 @dataclass
 class Identifiability:
     """Sensitivities at the optimum, standard errors from a stated noise model,
@@ -598,15 +606,15 @@ class Identifiability:
                        + ("; the force's noise as above" if "force term" in self.noise_model else ""))
         for n in self.names:
             se = self.standard_error_rel[n]
-            se_s = "undetermined" if not np.isfinite(se) else f"+/-{100 * se:.1f}%"
+            se_s = "undetermined" if not np.isfinite(se) else f"+/-{percent_text(se)}"
             if self.standard_error_rel_data is not None:
                 sd = self.standard_error_rel_data[n]
-                se_s = ("undetermined by the data" if not np.isfinite(sd) else f"+/-{100 * sd:.1f}% from the data") \
+                se_s = ("undetermined by the data" if not np.isfinite(sd) else f"+/-{percent_text(sd)} from the data") \
                     + f" ({se_s} from the noise model)"
             out.append(f"{n}: {se_s}; 10% change moves the image by {self.image_sensitivity_px[n]:.2f} px "
                        f"and the force by {self.force_sensitivity_N[n]:.3f} N; {self.flags[n]}")
         for r, v in (self.ratio_standard_error_rel_data or {}).items():
-            out.append(f"ratio {r}: +/-{100 * v:.1f}% from the data" if np.isfinite(v) else f"ratio {r}: undetermined")
+            out.append(f"ratio {r}: " + (f"+/-{percent_text(v)} from the data" if np.isfinite(v) else "undetermined"))
         for v in self.falling_directions:
             out.append("the cost still falls when the log-moduli move along (" + ", ".join(
                 f"{n} {x:+.2f}" for n, x in zip(self.names, v) if abs(x) > 1e-3)

@@ -113,6 +113,18 @@ def test_a_point_that_is_not_a_minimum_is_reported_as_one(case, monkeypatch):
     assert ident.to_dict()["falling_directions"] == ident.falling_directions
 
 
+def test_a_small_standard_error_is_printed_as_small_not_as_zero():
+    """One decimal of a percent, except under 0.1%: the demo's E_B, fixed by the force
+    to 0.024% under the noise model, printed as "+/-0.0%" read as no error at all."""
+    from app.core.identify import Identifiability, percent_text
+
+    assert [percent_text(x) for x in (0.00013, 0.0009, 0.01, 0.25, 0.0)] == ["0.013%", "0.09%", "1.0%", "25.0%", "0.0%"]
+    ident = Identifiability(("E_B_kPa",), {"E_B_kPa": 0.00013}, np.eye(1), {"E_B_kPa": "ok"}, {"E_B_kPa": 0.66},
+                            {"E_B_kPa": 0.86}, [], "a noise model", {"E_B_kPa": 0.001}, {})
+    assert any(line.startswith("E_B_kPa: +/-0.1% from the data (+/-0.013% from the noise model)")
+               for line in ident.lines()), ident.lines()
+
+
 def test_images_alone_fix_only_ratios(case):
     """Displacement control: scaling every modulus leaves the warp and NMI unchanged,
     while the force scales with them."""
