@@ -59,7 +59,6 @@ from app.core.effects.inclusion import huber_loss
 from app.core.effects.model import EffectProblem, FitResult, fit, fit_hyperelastic, identify_with_effects
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import relabel
-from app.core.forward import build_model
 from app.core.identify import force_noise_N
 from app.core.geometry import paint_labels
 from app.core.mesh import MeshSettings, auto_settings, specimen_mesh
@@ -1138,13 +1137,18 @@ def current_model(exp, effects=(), *, mesh_settings=None, inclusion=None, base=N
     """The problem for a model: effects on the experiment (with an added inclusion region, if any)."""
     effects = check(effects)
     if inclusion is not None:
-        from app.core.effects.inclusion import inclusion_region
-
-        exp = replace(exp, specimen=exp.specimen.with_region(inclusion_region(inclusion)))
-        if mesh_settings is None:
-            mesh_settings = located_inclusion_settings(exp)
+        exp, mesh_settings = _with_inclusion(exp, inclusion, mesh_settings)
     return EffectProblem.from_experiment(exp, effects=effects, mesh_settings=mesh_settings, base=base,
                                          inclusion=inclusion, progress=progress, cancel=cancel, **kw)
+
+
+def _with_inclusion(exp, inclusion: dict, mesh_settings):
+    """``exp`` with the inclusion's sphere as a region, and the settings to mesh it
+    with (``mesh_settings``, else :func:`located_inclusion_settings`)."""
+    from app.core.effects.inclusion import inclusion_region
+
+    exp = replace(exp, specimen=exp.specimen.with_region(inclusion_region(inclusion)))
+    return exp, (located_inclusion_settings(exp) if mesh_settings is None else mesh_settings)
 
 
 def same_mesh_model(problem: EffectProblem, cp: EffectProblem, near_kPa=None, cancel=None) -> EffectProblem:
@@ -2447,24 +2451,18 @@ class ModelCheck:
         return problem
 
     def _placed_mesh(self, inclusion: dict, progress, cancel) -> dict:
-        """The mesh (and its stiffness terms) of an inclusion the identification
-        placed (:meth:`add`): the located sphere's mesh (``inclusion['meshed_at']``;
-        the mesh cache gives back the one the version was fitted on), with the tets
-        in the placed sphere relabelled, as when it was added. Meshing the placed
-        sphere instead would make another model than the one the saved parameters
-        and errors belong to."""
-        from app.core.effects.inclusion import inclusion_region
-
-        at = {"name": inclusion["name"], **inclusion["meshed_at"]}
-        exp = replace(self.exp, specimen=self.exp.specimen.with_region(inclusion_region(at)))
-        settings = self.mesh_settings if self.mesh_settings is not None else located_inclusion_settings(exp)
+        """The mesh of an inclusion the identification placed (:meth:`add`): the
+        located sphere's mesh (``inclusion['meshed_at']``; the mesh cache gives back
+        the one the version was fitted on), with the tets in the placed sphere
+        relabelled, as when it was added. Meshing the placed sphere instead would
+        make another model than the one the saved parameters and errors belong to."""
+        exp, settings = _with_inclusion(self.exp, {"name": inclusion["name"], **inclusion["meshed_at"]},
+                                        self.mesh_settings)
         mesh = specimen_mesh(exp, settings, progress=progress, cancel=cancel)
         labels = _sphere_labels(mesh, exp, inclusion["name"])(inclusion)
         if labels is None:
             raise ElastoidError(f"the inclusion {_sphere_text(inclusion)} holds no tet of the mesh it was placed on")
-        (progress or (lambda s: None))("assembling the finite-element model")
-        relabelled = replace(mesh, labels=labels)
-        return {"mesh": relabelled, "operator": relabel(build_model(mesh).op, relabelled)}
+        return {"mesh": replace(mesh, labels=labels)}
 
     def _problem(self, index: int, progress=None, cancel=None) -> EffectProblem:
         """Version ``index``'s model (rebuilt for a restored check)."""
