@@ -235,8 +235,21 @@ def cmd_identify(args) -> int:
             bar.done()
     result.effects = tuple(effects)
     result.experiment = str(args.experiment)
+    check = None
+    if args.mesh_check:  # the same model on a finer mesh, from this optimum
+        from app.core.mesh_check import mesh_check
+
+        bar = TerminalProgress(not args.quiet, 1)
+        try:
+            check = mesh_check(exp, effects, result.parameters, problem.mesh.n_nodes, mesh_settings=settings,
+                               inclusion=inclusion, progress=bar.message, roi_px=roi, frames=frames,
+                               cost=args.cost, nu=args.nu, similarity=args.similarity)
+        finally:
+            bar.done()
     payload = result.to_json_dict()
     payload["frames"] = list(problem.frames)  # the source first
+    if check is not None:
+        payload["mesh_check"] = check.to_dict()
     if inclusion is not None:  # its place is a parameter too (as in a diagnosis' candidate)
         payload["parameters"] = {**payload["parameters"], "center_mm": inclusion["center_mm"],
                                  "radius_mm": inclusion["radius_mm"]}
@@ -277,6 +290,10 @@ def cmd_identify(args) -> int:
         print(f"  NMI {result.cost['nmi']:.4f}, force RMS misfit {result.cost['force_rms_N']:.4f} N")
         if result.identifiability is not None:
             for line in result.identifiability.lines():
+                print(f"  {line}")
+        if check is not None:
+            ident = result.identifiability
+            for line in check.lines(None if ident is None else ident.standard_error_rel_data):
                 print(f"  {line}")
     return 0 if written else 1
 
@@ -351,15 +368,45 @@ def cmd_diagnose(args) -> int:
                           progress=bar.message)
     finally:
         bar.done()
+    check = _diagnosis_mesh_check(args, exp, result, settings, inclusion) if args.mesh_check else None
     payload = result.to_json_dict()
     payload["experiment"] = str(args.experiment)
     payload["seconds"] = round(time.perf_counter() - t0, 2)
+    if check is not None:
+        payload["mesh_check"] = check.to_dict()
     written = _write_json(args.json, payload) if args.json else True
     if args.json != "-":
         print(f"{exp.name}: diagnosis in {time.perf_counter() - t0:.1f} s")
         for line in result.lines():
             print(f"  {line}")
+        if check is not None:
+            for line in check.lines():
+                print(f"  {line}")
     return 0 if written else 1
+
+
+def _diagnosis_mesh_check(args, exp, result, settings, inclusion):
+    """The model the diagnosis calls for (its ``identified``: the verdict added, an
+    inclusion at the place the identification found) identified again on a finer
+    mesh (app.core.mesh_check); None when the diagnosis identified no model."""
+    from app.core.mesh_check import mesh_check
+
+    ident = result.identified
+    if not ident:
+        if not args.quiet:
+            print("elastoid: --mesh-check: the diagnosis identified no model to check", file=sys.stderr)
+        return None
+    c = result.baseline if result.verdict == "none" else result.candidate(result.verdict)
+    sphere = ident.get("inclusion") or c.inclusion or inclusion
+    if sphere is not None:
+        sphere = {k: sphere[k] for k in ("name", "center_mm", "radius_mm")}
+    mesh = getattr(c.problem, "mesh", None)
+    bar = TerminalProgress(not args.quiet, 1)
+    try:
+        return mesh_check(exp, ident["effects"], ident["parameters"], None if mesh is None else mesh.n_nodes,
+                          mesh_settings=settings, inclusion=sphere, progress=bar.message)
+    finally:
+        bar.done()
 
 
 def cmd_simulate(args) -> int:
@@ -452,6 +499,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --effects inclusion: after locating the sphere, search its place and size as the "
                          "Model check's 'Refine the inclusion's place' does, and fit with the refined sphere when "
                          "it fits the measurements better (two to three minutes at the paper's size)")
+    ip.add_argument("--mesh-check", action="store_true",
+                    help="identify the result again on a mesh 0.7 times the size, to show how much of each "
+                         "parameter is the mesh's own error (minutes at paper size)")
     ip.add_argument("--quiet", action="store_true", help="no progress line")
     ip.set_defaults(func=cmd_identify)
 
@@ -461,6 +511,9 @@ def build_parser() -> argparse.ArgumentParser:
     dp.add_argument("--candidates", default="", help="effects to try (default: every effect not in the model)")
     dp.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
     _add_mesh_options(dp)
+    dp.add_argument("--mesh-check", action="store_true",
+                    help="identify the model the diagnosis calls for again on a mesh 0.7 times the size, to show "
+                         "how much of each parameter is the mesh's own error (minutes at paper size)")
     dp.add_argument("--quiet", action="store_true", help="no progress line")
     dp.set_defaults(func=cmd_diagnose)
 

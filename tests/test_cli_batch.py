@@ -390,3 +390,78 @@ def test_the_element_size_options_set_the_mesh_and_keep_the_automatic_rest(comma
     assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, auto.probe_edge_mm, 1.0)
     s = cli._mesh_settings(parse([command, "resources/demo", "--probe-edge-mm", "1.5"]), exp)
     assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, 1.5, None)
+
+
+def test_the_mesh_check_identifies_the_result_again_on_a_finer_mesh(tmp_path, capsys):
+    """identify --mesh-check: the same model on a finer mesh, identified from the
+    optimum. On a committed test phantom (nothing hidden; truth B 15, A 45 kPa;
+    both meshes committed, the finer one not the truth's), the finer mesh has more
+    vertices, its moduli are within 10% of the truth, and the changes printed and
+    in the JSON are the two identifications' ratios."""
+    dest = tmp_path / "r.json"
+    assert main(["identify", str(ROOT / "tests" / "data" / "experiments" / "diagnose" / "none-5"), "--starts",
+                 "10,30", "--mesh-check", "--json", str(dest), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    result = json.loads(dest.read_text())
+    check = result["mesh_check"]
+    assert check["scale"] == 0.7
+    coarse, fine = check["nodes"]
+    assert fine > 2 * coarse, check["nodes"]
+    assert set(check["parameters"]) == set(check["change"]) == {"E_B_kPa", "E_A_kPa"}
+    for name, truth in (("E_B_kPa", 15.0), ("E_A_kPa", 45.0)):
+        assert check["parameters"][name] == pytest.approx(truth, rel=0.10), check
+        assert check["change"][name] == pytest.approx(check["parameters"][name] / result["parameters"][name] - 1,
+                                                      abs=1e-12)
+    assert f"mesh check: on a mesh 0.7 times the size ({fine:,} vertices against {coarse:,}" in printed, printed
+    assert f"E_A {check['parameters']['E_A_kPa']:.2f} kPa ({check['change']['E_A_kPa']:+.1%})" in printed, printed
+    assert "than their standard error from the data" in printed or "than its standard error" in printed, printed
+
+
+def test_the_mesh_check_says_which_moduli_the_mesh_limits():
+    """A modulus that moves on the finer mesh by more than its standard error from
+    the data is limited by the mesh; when none does, the mesh is fine enough."""
+    from app.core.mesh_check import MeshCheck
+
+    check = MeshCheck(0.7, (2558, 6266), {"E_B_kPa": 17.73, "E_A_kPa": 62.54},
+                      {"E_B_kPa": 17.94, "E_A_kPa": 62.60}, {"total": -1.05}, 101.6)
+    assert check.change["E_B_kPa"] == pytest.approx(17.94 / 17.73 - 1)
+    lines = check.lines({"E_B_kPa": 0.001, "E_A_kPa": 0.01})
+    assert lines[0] == ("mesh check: on a mesh 0.7 times the size (6,266 vertices against 2,558; 102 s): "
+                        "E_B 17.94 kPa (+1.2%), E_A 62.60 kPa (+0.1%)")
+    assert lines[1].startswith("E_B moved by more than its standard error from the data (0.1%)"), lines
+    assert "limits it" in lines[1]
+    lines = check.lines({"E_B_kPa": 0.02, "E_A_kPa": float("inf")})
+    assert lines[1].startswith("each modulus moved by less than its standard error"), lines
+    assert len(check.lines(None)) == 1  # without standard errors, the figures alone
+    assert MeshCheck(0.7, (None, 6266), check.before, check.parameters, {}, 1.0).lines()[0].startswith(
+        "mesh check: on a mesh 0.7 times the size (6,266 vertices; 1 s)")
+
+
+def test_diagnose_mesh_check_checks_the_model_the_diagnosis_calls_for(monkeypatch):
+    """diagnose --mesh-check checks the identified model: the verdict's effects and
+    parameters, and an inclusion at the place the identification found (not the
+    located one), without the sphere's other keys."""
+    from types import SimpleNamespace
+
+    from app import cli
+    from app.core import mesh_check as mc
+
+    seen = {}
+
+    def fake(exp, effects, parameters, nodes, **kw):
+        seen.update(effects=effects, parameters=parameters, nodes=nodes, **kw)
+        return "checked"
+
+    monkeypatch.setattr(mc, "mesh_check", fake)
+    placed = {"name": "I", "center_mm": [55.7, 45.0, 76.2], "radius_mm": 4.7}
+    located = {"name": "I", "center_mm": [57.5, 45.0, 78.0], "radius_mm": 5.4, "meshed_at": None}
+    cand = SimpleNamespace(inclusion=located, problem=SimpleNamespace(mesh=SimpleNamespace(n_nodes=3465)))
+    result = SimpleNamespace(identified={"effects": ["inclusion"], "parameters": {"E_I_kPa": 79.1},
+                                         "inclusion": {**placed, "meshed_at": located}},
+                             verdict="inclusion", baseline=None, candidate=lambda e: cand)
+    args = cli.build_parser().parse_args(["diagnose", "x", "--mesh-check", "--quiet"])
+    assert cli._diagnosis_mesh_check(args, "exp", result, None, None) == "checked"
+    assert seen["effects"] == ["inclusion"] and seen["parameters"] == {"E_I_kPa": 79.1}
+    assert seen["inclusion"] == placed and seen["nodes"] == 3465
+    result.identified = None
+    assert cli._diagnosis_mesh_check(args, "exp", result, None, None) is None
