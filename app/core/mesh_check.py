@@ -9,9 +9,10 @@ mesh's optimum. A parameter that moves by more than its standard error from
 the data is limited by the mesh, not by the measurements.
 
 Measured (docs/model-check.md, "Why soft spheres: the mesh"): the described
-regions move by 0.5-3% between the automatic mesh and the finer one at paper
-size; an undescribed sphere's modulus fitted at its true place moves by tens of
-percent (a 70 kPa sphere: 54.5 -> 75.3 kPa; a 6 kPa one: 0.6 -> 5.6 kPa).
+regions moved by 0-2% between the automatic mesh and the finer one at paper
+size (the demo: +1.2% and +1.3%), 1-3% on a small test phantom; an undescribed
+sphere's modulus fitted at its true place moved by tens of percent (a 70 kPa
+sphere: 54.5 -> 75.3 kPa; a 6 kPa one: 0.6 -> 5.6 kPa).
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ def mesh_check(exp, effects, parameters: dict, nodes: int | None, *, mesh_settin
         else:
             settings = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
     say = progress or (lambda s: None)
-    say(f"mesh check: meshing {scale:g} times finer")
+    say(f"mesh check: meshing with elements {scale:g} times the size")
     names = tuple(exp.specimen.region_names) + ((inclusion["name"],) if inclusion is not None else ())
     near = [parameters.get(f"E_{n}_kPa") for n in names]  # its reduced model trained about the result
     problem = current_model(exp, tuple(effects), mesh_settings=settings.with_scale(scale), inclusion=inclusion,

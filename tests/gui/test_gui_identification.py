@@ -183,3 +183,42 @@ def test_paper_workflow_on_the_demo(make_window, qtbot, tmp_path):
     assert s.mesh is not None and s.mesh.n_nodes > 1000
     html = window.export("report", tmp_path / "demo-report.html").read_text()
     assert "Demo" in html and f"{out.parameters['E_A_kPa']:.2f}" in html and "reference" in html
+
+
+def test_the_mesh_check_runs_on_the_result_and_joins_the_report(window, tiny_experiment, qtbot, monkeypatch):
+    """Check the mesh: enabled once there is a result; it runs the core's mesh check
+    on a worker with the result and the identification's own settings (the core's
+    check is tested in tests/test_cli_batch.py), and its lines join the report."""
+    from app.core import mesh_check as mc
+    from app.gui.models.session import IdentificationOutcome
+
+    panel = _prepare(window, tiny_experiment)
+    s = window.session
+    assert not panel.mesh_check_button.isEnabled()
+    seen = {}
+
+    def fake(exp, effects, parameters, nodes, **kw):
+        kw["progress"]("mesh check: meshing with elements 0.7 times the size")
+        seen.update(exp=exp, effects=effects, parameters=parameters, nodes=nodes, **kw)
+        return mc.MeshCheck(0.7, (nodes, 6266), parameters, {"E_B_kPa": 18.2, "E_A_kPa": 63.1}, {}, 12.0)
+
+    monkeypatch.setattr(mc, "mesh_check", fake)
+    params = {"E_B_kPa": 18.0, "E_A_kPa": 63.0}
+    s.set_outcome(IdentificationOutcome(parameters=params, cost={"total": -1.05}, evaluations=10, seconds=1.0,
+                                        standard_error_rel={"E_B_kPa": 0.001, "E_A_kPa": 0.01},
+                                        settings=s.identification))
+    assert panel.mesh_check_button.isEnabled()
+    panel.mesh_check_button.click()
+    assert panel.running and not panel.run_button.isEnabled() and not panel.mesh_check_button.isEnabled()
+    wait_task_done(qtbot, panel, 30)
+    assert not window.error_boxes, [b.informativeText() for b in window.error_boxes]
+    report = panel.report.toPlainText()
+    assert "Mesh check\n  mesh check: on a mesh 0.7 times the size (6,266 vertices" in report, report
+    assert "E_B 18.20 kPa (+1.1%), E_A 63.10 kPa (+0.2%)" in report, report
+    assert "E_B moved by more than its standard error from the data (0.1%)" in report, report
+    assert seen["effects"] == () and seen["parameters"] == params
+    assert seen["cost"] == s.identification.cost and seen["nu"] == s.identification.nu
+    assert seen["frames"] == s.analysis_frames() and seen["roi_px"] == s.roi_px
+    assert seen["mesh_settings"] == s.effective_mesh_settings()
+    assert panel.mesh_check_button.isEnabled() and panel.run_button.isEnabled()
+    assert "Mesh check done" in panel.state.text()
