@@ -45,8 +45,7 @@ def main(argv=None) -> int:
     import tomllib
 
     from app.core.compare import track
-    from app.core.diagnose import (_fitted, _host, _with_inclusion, current_model, identify_from,
-                                   located_inclusion_settings, noise_model)
+    from app.core.diagnose import _fitted, _host, _with_inclusion, current_model, identify_from, noise_model
     from app.core.effects.model import identify_with_effects
     from app.core.experiment import read_experiment
     from app.core.mesh import build_mesh
@@ -63,7 +62,7 @@ def main(argv=None) -> int:
     texp, located = _with_inclusion(exp, sphere, None)
     rows = []
     for scale in (float(s) for s in args.scales.split(",")):
-        settings = located_inclusion_settings(texp).with_scale(scale)
+        settings = located.with_scale(scale)
         for k in range(args.meshes):
             t0 = time.perf_counter()
             mesh = build_mesh(texp.specimen.size_mm, texp.probe.face_rect_mm(), texp.specimen.regions, settings,

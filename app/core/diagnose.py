@@ -59,7 +59,7 @@ from app.core.effects.inclusion import huber_loss
 from app.core.effects.model import EffectProblem, FitResult, fit, fit_hyperelastic, identify_with_effects
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import relabel
-from app.core.identify import force_noise_N
+from app.core.identify import force_noise_N, parameter_text
 from app.core.geometry import paint_labels
 from app.core.mesh import MeshSettings, auto_settings, specimen_mesh
 
@@ -914,8 +914,9 @@ class Diagnosis:
         if not self.identified:
             return ""
         p = self.identified["parameters"]
-        moduli = ", ".join(f"{k[:-4]} {v:.2f} kPa" for k, v in p.items() if k.endswith("_kPa"))
-        others = ", ".join(f"{k} {v:.3g}" for k, v in p.items() if not k.endswith("_kPa") and isinstance(v, float))
+        moduli = ", ".join(parameter_text(k, v) for k, v in p.items() if k.endswith("_kPa"))
+        others = ", ".join(parameter_text(k, v) for k, v in p.items()
+                           if not k.endswith("_kPa") and isinstance(v, float))
         inc = self.identified.get("inclusion")
         where = f"; {inc['name']} centred at {_sphere_text(inc)}" if inc else ""
         spread = self.identified.get("place_spread")

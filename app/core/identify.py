@@ -508,6 +508,12 @@ def percent_text(rel: float) -> str:
     return f"{v:.2g}%" if 0 < v < 0.1 else f"{v:.1f}%"
 
 
+def parameter_text(name: str, value: float) -> str:
+    """A parameter and its value in words: a modulus as "E_B 17.80 kPa", any other
+    parameter as "g1 0.3"."""
+    return f"{name[:-4]} {value:.2f} kPa" if name.endswith("_kPa") else f"{name} {value:.3g}"
+
+
 @dataclass
 class Identifiability:
     """Sensitivities at the optimum, standard errors from a stated noise model,

@@ -21,7 +21,7 @@ import math
 import time
 from dataclasses import dataclass
 
-from app.core.identify import percent_text
+from app.core.identify import parameter_text, percent_text
 
 # the finer mesh's lengths relative to the identification's (as the simulator's truth meshes)
 MESH_CHECK_SCALE = 0.7
@@ -50,13 +50,14 @@ class MeshCheck:
         error from the data (Identifiability.standard_error_rel_data), to say which
         modulus the mesh limits."""
         n0, n1 = self.nodes
-        moved = ", ".join(_value_text(k, self.parameters[k]) + f" ({c:+.1%})" for k, c in self.change.items())
+        change = self.change
+        moved = ", ".join(parameter_text(k, self.parameters[k]) + f" ({c:+.1%})" for k, c in change.items())
         against = "" if n0 is None else f" against {n0:,}"
         out = [f"mesh check: on a mesh {self.scale:g} times the size ({n1:,} vertices{against}; "
                f"{self.seconds:.0f} s): {moved}"]
         se = {k: v for k, v in (standard_errors or {}).items() if v is not None and math.isfinite(v)}
-        moduli = [k for k in self.change if k.endswith("_kPa") and k in se]
-        beyond = [k for k in moduli if abs(self.change[k]) > se[k]]
+        moduli = [k for k in change if k.endswith("_kPa") and k in se]
+        beyond = [k for k in moduli if abs(change[k]) > se[k]]
         if beyond:
             one = len(beyond) == 1
             out.append(f"{', '.join(k[:-4] for k in beyond)} moved by more than {'its' if one else 'their'} "
@@ -105,7 +106,3 @@ def mesh_check(exp, effects, parameters: dict, nodes: int | None, *, mesh_settin
                          dict(parameters), dict(res.parameters), dict(res.cost), time.perf_counter() - t0)
     finally:
         problem.release()
-
-
-def _value_text(name: str, value: float) -> str:
-    return f"{name[:-4]} {value:.2f} kPa" if name.endswith("_kPa") else f"{name} {value:.3g}"
