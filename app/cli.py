@@ -244,6 +244,8 @@ def cmd_identify(args) -> int:
             check = mesh_check(exp, effects, result.parameters, problem.mesh.n_nodes, mesh_settings=settings,
                                inclusion=inclusion, progress=bar.message, roi_px=roi, frames=frames,
                                cost=args.cost, nu=args.nu, similarity=args.similarity)
+        except ElastoidError as exc:  # the identification stands: written and printed without the check
+            print(f"elastoid: --mesh-check failed: {exc}", file=sys.stderr)
         finally:
             bar.done()
     payload = result.to_json_dict()
@@ -405,6 +407,9 @@ def _diagnosis_mesh_check(args, exp, result, settings, inclusion):
     try:
         return mesh_check(exp, ident["effects"], ident["parameters"], None if mesh is None else mesh.n_nodes,
                           mesh_settings=settings, inclusion=sphere, progress=bar.message)
+    except ElastoidError as exc:  # the diagnosis stands: written and printed without the check
+        print(f"elastoid: --mesh-check failed: {exc}", file=sys.stderr)
+        return None
     finally:
         bar.done()
 

@@ -445,5 +445,32 @@ def test_diagnose_mesh_check_checks_the_model_the_diagnosis_calls_for(monkeypatc
     assert cli._diagnosis_mesh_check(args, "exp", result, None, None) == "checked"
     assert seen["effects"] == ["inclusion"] and seen["parameters"] == {"E_I_kPa": 79.1}
     assert seen["inclusion"] == placed and seen["nodes"] == 3465
+    from app.core.errors import MeshingError
+
+    def failing(*a, **kw):
+        raise MeshingError("fTetWild gave up")
+
+    monkeypatch.setattr(mc, "mesh_check", failing)  # the diagnosis stands without its check
+    assert cli._diagnosis_mesh_check(args, "exp", result, None, None) is None
     result.identified = None
     assert cli._diagnosis_mesh_check(args, "exp", result, None, None) is None
+
+
+def test_a_failed_mesh_check_loses_nothing(tmp_path, capsys, monkeypatch):
+    """When the finer mesh cannot be made (here the mesher fails), identify --mesh-check
+    still writes and prints the identification, and says on stderr what failed."""
+    from app.core import mesh_check as mc
+    from app.core.errors import MeshingError
+
+    def failing(*a, **kw):
+        raise MeshingError("fTetWild gave up")
+
+    monkeypatch.setattr(mc, "mesh_check", failing)
+    dest = tmp_path / "r.json"
+    assert main(["identify", str(ROOT / "tests" / "data" / "experiments" / "diagnose" / "none-5"), "--starts",
+                 "10,30", "--mesh-check", "--json", str(dest), "--quiet"]) == 0
+    out = capsys.readouterr()
+    result = json.loads(dest.read_text())
+    assert set(result["parameters"]) == {"E_B_kPa", "E_A_kPa"} and "mesh_check" not in result
+    assert "E_A_kPa =" in out.out and "mesh check:" not in out.out
+    assert "--mesh-check failed: fTetWild gave up" in out.err, out.err
