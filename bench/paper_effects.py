@@ -179,6 +179,20 @@ def _errors(params: dict, truth: dict) -> str:
     return ", ".join(f"{params[f'E_{k}_kPa'] / v - 1:+.1%}" for k, v in truth.items() if f"E_{k}_kPa" in params)
 
 
+def _confirmation(d: dict) -> str:
+    """The findings on a thin margin diagnosed again on a finer mesh, in a few words ("" when none were)."""
+    k = d.get("confirmation")
+    if not k:
+        return ""
+    what = "+".join(k["effects"])
+    if k["confirmed"] is None:
+        return f"{what}: failed"
+    there = k["candidates"].get(k["verdict"]) or k["candidates"][k["effects"][0]]
+    how = "confirmed" if k["confirmed"] else "dropped"
+    return (f"{what} {how} (ratio {k['ratio']:.2f}; finer: {k['excess_px']:.3f} / {k['floor_px']:.3f} px, "
+            f"score {there['score']:+.0f}; {k['seconds']:.0f} s)")
+
+
 def run(out: Path, name: str, seed_offset: int = 0, probe_edge_mm: float | None = None) -> list[str]:
     from app.core.effects import INFO
     from app.core.simulate import read_truth
@@ -205,8 +219,8 @@ def run(out: Path, name: str, seed_offset: int = 0, probe_edge_mm: float | None 
     moduli = {k: v for k, v in truth["moduli_kPa"].items() if k not in hidden_regions}  # the described ones
     base = d["baseline"]
     verdict = d["verdict"] + (f" (near tie: {d['rival']})" if d.get("rival") else "")
-    row = [name, hidden, verdict, "", "", "", _errors(base["parameters"], moduli), f"{seconds:.0f}",
-           f"{peak_gb:.1f}"]
+    row = [name, hidden, verdict, "", "", "", _errors(base["parameters"], moduli), _confirmation(d),
+           f"{seconds:.0f}", f"{peak_gb:.1f}"]
     ids = [c["effect"] for c in d["candidates"]]
     if hidden in ids:
         c = d["candidates"][ids.index(hidden)]
@@ -233,7 +247,7 @@ def main() -> int:
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     head = ["case", "hidden", "verdict", "hidden's rank (score)", "moduli with it (B, A)", "error falls with it",
-            "baseline moduli (B, A)", "diagnosis s", "peak GB"]
+            "baseline moduli (B, A)", "finer mesh (thin margin)", "diagnosis s", "peak GB"]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for name in args.cases.split(","):

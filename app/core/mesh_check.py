@@ -73,6 +73,19 @@ class MeshCheck:
                 "change": self.change, "cost": dict(self.cost), "seconds": round(self.seconds, 2)}
 
 
+def identification_settings(exp, mesh_settings=None, inclusion: dict | None = None):
+    """The mesh settings a model of ``exp`` (with ``inclusion``'s sphere, if any) was
+    meshed with: ``mesh_settings``, or the automatic ones it stood for (None)."""
+    from app.core.diagnose import _with_inclusion
+    from app.core.mesh import auto_settings
+
+    if mesh_settings is not None:
+        return mesh_settings
+    if inclusion is not None:
+        return _with_inclusion(exp, inclusion, None)[1]
+    return auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
+
+
 def mesh_check(exp, effects, parameters: dict, nodes: int | None, *, mesh_settings=None,
                inclusion: dict | None = None, scale: float | None = None, progress=None, cancel=None,
                **options) -> MeshCheck:
@@ -82,17 +95,11 @@ def mesh_check(exp, effects, parameters: dict, nodes: int | None, *, mesh_settin
     size (None: MESH_CHECK_SCALE), from ``parameters`` (as a diagnosis identifies the model it calls for:
     :func:`app.core.diagnose.identify_from`). ``options``: the problem's ROI,
     frames, cost, Poisson's ratio and similarity, as the first identification's."""
-    from app.core.diagnose import _with_inclusion, current_model, identify_from
-    from app.core.mesh import auto_settings
+    from app.core.diagnose import current_model, identify_from
 
     t0 = time.perf_counter()
     scale = MESH_CHECK_SCALE if scale is None else float(scale)
-    settings = mesh_settings
-    if settings is None:
-        if inclusion is not None:
-            settings = _with_inclusion(exp, inclusion, None)[1]
-        else:
-            settings = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
+    settings = identification_settings(exp, mesh_settings, inclusion)
     say = progress or (lambda s: None)
     say(f"mesh check: meshing with elements {scale:g} times the size")
     names = tuple(exp.specimen.region_names) + ((inclusion["name"],) if inclusion is not None else ())

@@ -24,7 +24,7 @@ import numpy as np
 
 from app.core.fem import interpolation_matrix
 from app.core.forward import build_model
-from app.core.mesh import MeshSettings, auto_settings, specimen_mesh
+from app.core.mesh import TRUTH, MeshSettings, auto_settings, specimen_mesh
 from app.core.ultrasound import Transducer, make_scatterers, render
 
 
@@ -70,7 +70,7 @@ class SpecimenTwin:
         settings = mesh_settings or auto_settings(truth_exp.specimen.size_mm, truth_exp.probe.face_rect_mm(),
                                                   truth_exp.specimen.regions).with_scale(mesh_scale)
         say("meshing the truth")
-        mesh = specimen_mesh(truth_exp, settings, progress=say, cancel=cancel)
+        mesh = specimen_mesh(truth_exp, settings, progress=say, cancel=cancel, kind=TRUTH)
         say("solving the truth")
         from app.core.forward import Boundary
 

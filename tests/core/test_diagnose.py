@@ -798,6 +798,80 @@ def test_a_verdict_of_none_says_why_and_names_an_effect_that_came_close():
     assert NEAR_MISS_FRACTION < MATERIAL_FRACTION
 
 
+def test_a_finding_on_a_thin_margin_is_confirmed_on_a_finer_mesh_or_dropped():
+    """The first mesh's numbers are blind seed 30205's (paper size, nothing
+    hidden): the current model's displacement error beyond the noise was 0.266 px
+    against a floor of 0.150 (1.77 times, under CONFIRM_BELOW), and a probe slip
+    removed 32% of it (0.180 px): material by the displacement alone, the verdict.
+    The finer mesh's are given here (that seed's own finer-mesh run was made on
+    the truth's mesh, and is withdrawn: docs/model-check.md): when the error there
+    is under its floor and the slip loses, the verdict is none and the why line
+    says so with those figures. A finding on a wide margin, one the force shows,
+    an inclusion or a finding on a neo-Hookean model is not diagnosed again."""
+    from dataclasses import replace
+
+    from app.core.diagnose import (CONFIRM_BELOW, Candidate, Diagnosis, NoiseModel, choose_verdict,
+                                   confirmed_verdict, thin_finding)
+    from app.gui.models.modelcheck import verdict_parts
+
+    def mis(chi2, excess_px, force_excess_N=0.006):
+        return {"chi2": chi2, "force_rms_N": 0.0197, "displacement_rms_px": 0.4, "force_excess_N": force_excess_N,
+                "force_floor_N": 0.0188, "displacement_excess_px": excess_px, "displacement_floor_px": 0.150}
+
+    base = Candidate("", (), {"E_B_kPa": 24.86, "E_A_kPa": 79.05}, {}, mis(3000.0, 0.266))
+    slip = Candidate("probe-slip", ("probe-slip",), {"E_B_kPa": 24.9}, {}, mis(2800.0, 0.180), 1, 181.0, "slides",
+                     material=True)
+    comp = Candidate("compressibility", ("compressibility",), {"nu": 0.47}, {}, mis(2700.0, 0.250), 1, 279.0,
+                     "volume")
+    assert 0.266 / 0.150 < CONFIRM_BELOW and thin_finding(base, slip)
+    assert not thin_finding(base, comp)  # no finding
+    assert not thin_finding(replace(base, misfit=mis(3000.0, 0.50)), slip)  # 3.3 times its floor: a wide margin
+    # the force shows it (the current model's force error 3 times its floor, 90% of it removed)
+    assert not thin_finding(replace(base, misfit=mis(3000.0, 0.266, force_excess_N=0.06)), slip)
+    assert not thin_finding(base, replace(slip, effect="inclusion"))
+    assert not thin_finding(replace(base, effects=("hyperelastic",)), slip)
+
+    noise = NoiseModel(0.02, 1481, 0.236, 318)
+    ranked = [comp, slip]
+    assert choose_verdict(ranked) == "probe-slip"
+    dropped = {"effects": ["probe-slip"], "verdict": "none", "confirmed": False, "scale": 0.7,
+               "nodes": [2558, 6266], "ratio": 0.266 / 0.150, "excess_px": 0.133, "floor_px": 0.150,
+               "candidates": {"probe-slip": {"score": -379.0, "material": False, "explained": -0.4, "unmet": ""}},
+               "seconds": 72.0}
+    verdict = confirmed_verdict(ranked, None, "probe-slip", dropped)
+    assert verdict == "none"
+    d = Diagnosis("x", base, ranked, verdict, noise, 1.0, confirmation=dropped)
+    why = d.none_text()
+    assert why.startswith("probe-slip (score +181, removing 32% of the error beyond the noise) was a finding on a "
+                          "thin margin: the current model's error beyond the noise in the displacement was 1.77 "
+                          "times its noise floor"), why
+    assert ("Diagnosed again on a mesh 0.7 times the size (6,266 vertices against 2,558; 72 s), the current model's "
+            "error beyond the noise is 0.133 px, under its floor of 0.150 px, and probe-slip scores -379. What it "
+            "explained was the mesh's error, not the specimen's") in why
+    assert f"why: {d.none_text(with_masked=False)}" in d.lines() and d.rival == ""
+    assert d.to_json_dict()["confirmation"] == dropped
+    assert Diagnosis.from_state(d.state()).confirmation == dropped
+    assert verdict_parts(d)[1] == f". {why}."
+    # borne out: the verdict stands, with a line that says so
+    kept = {**dropped, "verdict": "probe-slip", "confirmed": True, "excess_px": 0.25,
+            "candidates": {"probe-slip": {"score": 240.0, "material": True, "explained": 0.4, "unmet": ""}}}
+    assert confirmed_verdict(ranked, None, "probe-slip", kept) == "probe-slip"
+    d = Diagnosis("x", base, ranked, "probe-slip", noise, 1.0, confirmation=kept)
+    line = next(x for x in d.lines() if x.startswith("confirmed: "))
+    assert line.endswith("Diagnosed again on a mesh 0.7 times the size (6,266 vertices against 2,558; 72 s), "
+                         "probe-slip is still a finding (score +240): it is not the mesh's"), line
+    assert "Probe-slip (score +181" in verdict_parts(d)[1] and d.none_text() == ""
+    # the finer mesh's diagnosis failed: the verdict stands, and the report says it is unconfirmed
+    failed = {"effects": ["probe-slip"], "confirmed": None, "error": "fTetWild failed"}
+    assert confirmed_verdict(ranked, None, "probe-slip", failed) == "probe-slip"
+    d = Diagnosis("x", base, ranked, "probe-slip", noise, 1.0, confirmation=failed)
+    assert any(x.startswith("not confirmed: probe-slip rests on a thin margin") and "fTetWild failed" in x
+               for x in d.lines()), d.lines()
+    # dropped, with another finding beside it: that one is the verdict
+    other = replace(comp, material=True)
+    assert confirmed_verdict([other, slip], None, "probe-slip", dropped) == "compressibility"
+
+
 def test_a_chi2_that_falls_far_beyond_the_mesh_error_is_material():
     """Paper size with three frames (bench/paper_effects.py --seed-offset 1000, the
     misfits of its JSON): a hidden Poisson's ratio of 0.40 (seed 1104) fitted by
@@ -1129,7 +1203,8 @@ IMAGE_CASES = [("sliding-bottom", "sliding-bottom", {"B": 0.10, "A": 0.20}),
 
 
 @pytest.mark.parametrize("case,effect,tol", IMAGE_CASES, ids=[c[0] for c in IMAGE_CASES])
-def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_factory, case, effect, tol):
+def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_factory, monkeypatch, case, effect,
+                                                                     tol):
     """The truth has an effect the baseline lacks and that shows in the images
     (the specimen slides on the table, the probe slides on the surface, the
     tissue is compressible). The baseline's misfit has the pattern the effect
@@ -1148,10 +1223,28 @@ def test_hidden_image_effect_is_named_and_adding_it_fixes_the_moduli(tmp_path_fa
     -7.0% (baseline -7%, -22%); the verdict needs nu at least 0.02 from the
     model's 0.49 (see compressibility.NU_NEGLIGIBLE). Since weak blocks are
     confirmed by a larger block (2026-11-29) the falls are 4.6-11.3x or to the
-    noise (docs/model-check.md, "Weak blocks confirmed by a larger block")."""
+    noise (docs/model-check.md, "Weak blocks confirmed by a larger block").
+
+    The first probe slip is taken as a finding on a thin margin (CONFIRM_BELOW
+    raised; its current model's error is 3.29 times its floor): diagnosed again
+    on a mesh 0.7 times the size (committed; not the truth's, which is cached
+    under a key of its own), the real slip is borne out there and stays the
+    verdict (2026-12-01: 3,315 vertices against 1,575; the current model's error
+    0.336 px against a floor of 0.137; the slip scores +310 and removes all of
+    it; 6 s)."""
+    forced = case == "probe-slip"
+    if forced:
+        monkeypatch.setattr("app.core.diagnose.CONFIRM_BELOW", 1e3)
     exp = _make(tmp_path_factory, case)
     d = diagnose(exp, candidates=IMAGE_CANDIDATES, mesh_settings=ID_MESH)
     assert d.verdict == effect, d.lines()
+    k = d.confirmation
+    if forced:
+        assert k["effects"] == [effect] and k["confirmed"] and k["verdict"] == effect, d.lines()
+        assert k["nodes"][1] > 2 * k["nodes"][0] and k["candidates"][effect]["material"], k
+        assert next(x for x in d.lines() if x.startswith("confirmed: ")).endswith("it is not the mesh's"), d.lines()
+    else:
+        assert k is None, d.lines()
     c = d.candidate(effect)
     assert c.material and c.signature >= 0.6, d.lines()
     truth = read_truth(exp.path)

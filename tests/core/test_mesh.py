@@ -123,6 +123,33 @@ def test_meshes_are_cached_by_their_inputs(mesh):
     assert len({_mesh_key(*o) for o in others} | {key}) == len(others) + 1
 
 
+def test_the_simulators_truth_mesh_is_never_a_models_mesh(monkeypatch):
+    """The simulator meshes its truth 0.7 times the identification's size, the
+    size the mesh check and a diagnosis' confirmation of a thin finding mesh at.
+    Under the same key the cache gave them the truth's own mesh (an inverse
+    crime, found 2026-12-01); the truth's meshes are cached under a key of their
+    own."""
+    from app.core import twin
+    from app.core.experiment import read_experiment
+    from app.core.mesh import TRUTH, _mesh_key
+
+    assert _mesh_key(SIZE, PROBE, REGIONS, SETTINGS, TRUTH) != _mesh_key(SIZE, PROBE, REGIONS, SETTINGS)
+    asked = {}
+
+    class Stop(Exception):
+        pass
+
+    def meshed(exp, settings, **kw):
+        asked.update(kw)
+        raise Stop
+
+    monkeypatch.setattr(twin, "specimen_mesh", meshed)
+    with pytest.raises(Stop):
+        twin.SpecimenTwin.build(read_experiment(Path(__file__).resolve().parents[2] / "resources" / "demo"),
+                                {"B": 18.0, "A": 63.0})
+    assert asked.get("kind") == TRUTH
+
+
 def _temp_folder(tmp_path, monkeypatch):
     """Point the temp folder of this process and of the mesher it spawns at ``tmp_path``."""
     import tempfile

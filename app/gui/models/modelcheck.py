@@ -446,7 +446,9 @@ def verdict_parts(diagnosis) -> tuple[str, str, str, str]:
     ev = c.evidence[:1].upper() + c.evidence[1:] if c.evidence else ""
     ident = (f" Identified with it, from the whole frames and the force: {d.identified_text()} (Add verdict makes "
              "this the new version).") if d.identified else ""
-    return (f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.{ident}", d.masked_sentence(),
+    confirmed = d.confirmation_text()
+    confirmed = f" {confirmed[:1].upper()}{confirmed[1:]}." if confirmed else ""
+    return (f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.{confirmed}{ident}", d.masked_sentence(),
             d.tie_advice() or "")
 
 
