@@ -468,6 +468,47 @@ def test_refine_the_inclusion_makes_a_version(window, visco_experiment, qtbot, m
     assert panel.history_table.rowCount() == 3 and panel.refine_button.isEnabled()
 
 
+def test_check_the_mesh_identifies_the_current_version_again(window, visco_experiment, qtbot, monkeypatch):
+    """"Check the mesh" (History tab) runs app.core.mesh_check on the current
+    version: its effects, its inclusion's sphere (the placement keys stripped),
+    its parameters and the check's ROI, frames, cost and Poisson's ratio (the
+    mesh check itself is tested end to end in tests/test_cli_batch.py; stubbed
+    here). Its lines are shown in the History tab; the versions are unchanged."""
+    import app.core.diagnose as dg
+    import app.core.mesh_check as mc
+
+    monkeypatch.setattr(dg, "locate_inclusion",
+                        lambda exp, effects, **kw: {"name": "I", "center_mm": [10.0, 20.0, 22.0], "radius_mm": 3.0,
+                                                    "score": 9.0})
+    asked = []
+
+    def check(exp, effects, parameters, nodes, **kw):
+        asked.append((tuple(effects), dict(parameters), nodes, kw))
+        finer = {k: v * 1.02 for k, v in parameters.items() if isinstance(v, float)}
+        return mc.MeshCheck(0.7, (nodes, 2 * nodes), dict(parameters), finer, {"total": -1.0}, 12.0)
+
+    monkeypatch.setattr(mc, "mesh_check", check)
+    panel = _prepare(window, visco_experiment)
+    assert not panel.mesh_check_button.isEnabled()  # no version yet
+    panel.identify_boxes["inclusion"].setChecked(True)
+    _click_and_wait(qtbot, panel, panel.identify_button)
+    assert panel.mesh_check_button.isEnabled(), panel.state.text()
+    h = panel.model.history
+    v = h.current_version
+    _click_and_wait(qtbot, panel, panel.mesh_check_button)
+    assert not window.error_boxes, [b.informativeText() for b in window.error_boxes]
+    (effects, params, nodes, kw), = asked
+    problem = panel.model.check.problem
+    assert effects == ("inclusion",) and params == v.parameters and nodes == problem.mesh.n_nodes
+    assert kw["inclusion"] == {"name": "I", "center_mm": [10.0, 20.0, 22.0], "radius_mm": 3.0}
+    assert kw["roi_px"] == problem.roi and kw["frames"] == problem.frames and kw["nu"] == problem.nu
+    text = panel.compare_text.toPlainText()
+    assert text.startswith(f"Mesh check of version {v.index} (+ inclusion)\nmesh check: on a mesh 0.7 times the "
+                           f"size ({2 * nodes:,} vertices against {nodes:,}; 12 s): E_B "), text
+    assert "(+2.0%)" in text and panel.tabs.currentIndex() == 2
+    assert panel.model.history is h and len(h) == 1 and "mesh check" in panel.state.text(), panel.state.text()
+
+
 def test_cancel_an_identification(window, visco_experiment, qtbot):
     panel = _prepare(window, visco_experiment)
     qtbot.mouseClick(panel.identify_button, Qt.LeftButton)

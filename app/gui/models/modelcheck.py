@@ -36,8 +36,10 @@ class Snapshot:
     comparison: Any = None  # app.core.compare.Comparison of the current version
     diagnosis: Any = None  # app.core.diagnose.Diagnosis (the last one)
     diagnosed_version: int | None = None  # the version the diagnosis was made for
-    action: str = ""  # "identify" | "diagnose" | "add" | "refine" | "revert"
+    action: str = ""  # "identify" | "diagnose" | "add" | "refine" | "revert" | "mesh-check"
     message: str = ""  # one line for the status bar and the log
+    # the current version identified again on a finer mesh (action "mesh-check"): its lines
+    mesh_check: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -192,6 +194,34 @@ class ModelCheckModel:
                 message += f". Warning: {v.warning}"
             return (check, inputs, Snapshot(check.history, cmp, prev.diagnosis, prev.diagnosed_version,
                                             "refine", message))
+
+        return work
+
+    def mesh_check_work(self) -> Work:
+        """The current version (its effects, inclusion sphere and parameters) identified
+        again on a mesh 0.7 times the size, with the check's ROI, frames, cost and
+        Poisson's ratio (app.core.mesh_check); the versions are unchanged."""
+        from dataclasses import replace
+
+        check, prev, inputs = self._need_check(), self.snapshot, self.inputs
+        v = check.history.current_version
+        problem = check.problem
+        sphere = v.inclusion
+        if sphere is not None:
+            sphere = {k: sphere[k] for k in ("name", "center_mm", "radius_mm")}
+        options = dict(roi_px=problem.roi, frames=problem.frames, cost=problem.cost_kind, nu=problem.nu)
+        exp, effects, params, nodes, settings = check.exp, v.effects, dict(v.parameters), problem.mesh.n_nodes, \
+            check.mesh_settings
+
+        def work(progress, cancel):
+            from app.core.mesh_check import mesh_check
+
+            mc = mesh_check(exp, effects, params, nodes, mesh_settings=settings, inclusion=sphere,
+                            progress=progress, cancel=cancel, **options)
+            head = f"version {v.index} ({v.label})"
+            lines = (head, *mc.lines())
+            return (check, inputs, replace(prev, action="mesh-check", message=f"{head}: {mc.lines()[0]}",
+                                                mesh_check=lines))
 
         return work
 
