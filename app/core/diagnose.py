@@ -700,6 +700,8 @@ class Diagnosis:
     masked_screen: list | None = None
     # findings on a thin margin diagnosed again on a finer mesh (see _confirmed); None when there were none
     confirmation: dict | None = None
+    # the mesh was coarser than the automatic one, in words (coarse_mesh_note); "" when it was not
+    mesh_note: str = ""
 
     def candidate(self, effect: str) -> Candidate:
         return next(c for c in self.candidates if c.effect == effect)
@@ -983,7 +985,8 @@ class Diagnosis:
                 "candidates": [c.state() for c in self.candidates], "verdict": self.verdict,
                 "noise": {**asdict(self.noise), "pair_sigma_px": list(self.noise.pair_sigma_px)},
                 "seconds": self.seconds, "tie_break": None if self.tie_break is None else self.tie_break.state(),
-                "masked": self.masked, "masked_screen": self.masked_screen, "confirmation": self.confirmation}
+                "masked": self.masked, "masked_screen": self.masked_screen, "confirmation": self.confirmation,
+                "mesh_note": self.mesh_note}
 
     @classmethod
     def from_state(cls, d: dict) -> "Diagnosis":
@@ -992,7 +995,8 @@ class Diagnosis:
         return cls(d["experiment"], Candidate.from_state(d["baseline"]),
                    [Candidate.from_state(c) for c in d["candidates"]], d["verdict"], noise, float(d["seconds"]),
                    tie_break=None if tb is None else TieBreak.from_state(tb), masked=d.get("masked"),
-                   masked_screen=d.get("masked_screen"), confirmation=d.get("confirmation"))
+                   masked_screen=d.get("masked_screen"), confirmation=d.get("confirmation"),
+                   mesh_note=d.get("mesh_note", ""))
 
     def rank_of(self, effect: str) -> int:
         """1-based rank of an effect among the candidates."""
@@ -1014,6 +1018,7 @@ class Diagnosis:
                 "masked_pair": self.masked,
                 "masked_screen": self.masked_screen,
                 "confirmation": self.confirmation,
+                "mesh_note": self.mesh_note or None,
                 "noise_model": self.noise.describe(),
                 "identified": self.identified,
                 "seconds": round(self.seconds, 2)}
@@ -1043,6 +1048,8 @@ class Diagnosis:
             out.append(f"masked: {self.masked_text() if self.verdict != 'none' else self.masked_sentence()}")
         if self.memory_note:
             out.append(f"memory: {self.memory_note}")
+        if self.mesh_note:
+            out.append(f"mesh: {self.mesh_note}")
         return out
 
 
@@ -1867,7 +1874,36 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
             say(f"{verdict}: not identified ({exc})")
         c.problem.release(keep=problem)
     return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked,
-                     tie_break, _memory_note(prep, n_lean), masked, screen, confirmation)
+                     tie_break, _memory_note(prep, n_lean), masked, screen, confirmation,
+                     "" if _confirming else coarse_mesh_note(exp, mesh_settings))
+
+
+# a user's mesh is coarser than the automatic one when an element size exceeds the
+# automatic one by more than this factor
+COARSER = 1.05
+
+
+def coarse_mesh_note(exp, mesh_settings) -> str:
+    """Why a diagnosis on ``mesh_settings`` coarser than the experiment's automatic
+    sizes (far field or probe face) may find the mesh's own error, in words; ""
+    when they are not coarser (or None: the automatic ones). Measured: with
+    nothing hidden, a 2.5 mm edge on a 30 x 14 mm probe face (the automatic one
+    there is 2.0 mm) gave a probe slip on both blind seeds tried (23010, 23011;
+    the current model's error 5.3 and 3.7 times its noise floor), and none on the
+    automatic mesh (docs/model-check.md, "Findings on a thin margin")."""
+    if mesh_settings is None:
+        return ""
+    auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
+    parts = [f"{what} {mine:g} mm against {theirs:g} mm" for what, mine, theirs in
+             (("elements", mesh_settings.edge_mm, auto.edge_mm),
+              ("on the probe face", mesh_settings.probe_edge_mm, auto.probe_edge_mm))
+             if mine > COARSER * theirs]
+    if not parts:
+        return ""
+    return (f"the mesh is coarser than the automatic one ({'; '.join(parts)}). The model's own error grows with "
+            f"the elements and can pass for an effect, a boundary one most of all (with nothing hidden, a 2.5 mm "
+            f"probe face edge where 2.0 mm is automatic gave a probe slip on both seeds tried). Diagnose on the "
+            f"automatic mesh, or weigh a finding with the mesh check")
 
 
 # A finding rests on a thin margin when the current model's error beyond the noise

@@ -872,6 +872,33 @@ def test_a_finding_on_a_thin_margin_is_confirmed_on_a_finer_mesh_or_dropped():
     assert confirmed_verdict([other, slip], None, "probe-slip", dropped) == "compressibility"
 
 
+def test_a_mesh_coarser_than_the_automatic_one_is_said():
+    """On the paper's phantom with a 30 x 14 mm face the automatic sizes are 10
+    and 2.0 mm; a 2.5 mm face edge gave a probe slip with nothing hidden on both
+    blind seeds tried (23010, 23011). A diagnosis on a coarser mesh says so (the
+    report's mesh: line, the JSON's mesh_note); on the automatic sizes or finer
+    ones it says nothing."""
+    from dataclasses import replace as dc_replace
+
+    from app.core.diagnose import Candidate, Diagnosis, NoiseModel, coarse_mesh_note
+    from app.core.mesh import MeshSettings, auto_settings
+
+    exp = read_experiment(ROOT / "resources" / "demo")
+    exp = dc_replace(exp, probe=dc_replace(exp.probe, face_mm=(30.0, 14.0)))
+    auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
+    assert (auto.edge_mm, auto.probe_edge_mm) == (10.0, 2.0)
+    note = coarse_mesh_note(exp, MeshSettings(edge_mm=10.0, probe_edge_mm=2.5))
+    assert note.startswith("the mesh is coarser than the automatic one (on the probe face 2.5 mm against 2 mm)")
+    assert "mesh check" in note
+    assert "elements 12 mm against 10 mm; on the probe face" in coarse_mesh_note(exp, MeshSettings(12.0, 2.5))
+    for finer in (None, auto, auto.with_scale(0.7), MeshSettings(edge_mm=10.0, probe_edge_mm=2.05)):
+        assert coarse_mesh_note(exp, finer) == ""
+    base = Candidate("", (), {"E_B_kPa": 18.0}, {}, {"chi2": 1.0, "force_rms_N": 0.02, "displacement_rms_px": 0.3})
+    d = Diagnosis("x", base, [], "none", NoiseModel(0.02, 1481, 0.236, 318), 1.0, mesh_note=note)
+    assert f"mesh: {note}" in d.lines() and d.to_json_dict()["mesh_note"] == note
+    assert Diagnosis.from_state(d.state()).mesh_note == note
+
+
 def test_a_chi2_that_falls_far_beyond_the_mesh_error_is_material():
     """Paper size with three frames (bench/paper_effects.py --seed-offset 1000, the
     misfits of its JSON): a hidden Poisson's ratio of 0.40 (seed 1104) fitted by

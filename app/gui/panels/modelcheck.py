@@ -940,7 +940,9 @@ class ModelCheckPanel(Panel):
                "  <span style='color:#b26a00'>The current version is another one: diagnose again to add to it."
                "</span>")
             + (f"<br><span style='color:#555'>{html.escape(d.memory_note[:1].upper() + d.memory_note[1:])}.</span>"
-               if d.memory_note else ""))
+               if d.memory_note else "")
+            + (f"<br><span style='color:#b26a00'>{html.escape(d.mesh_note[:1].upper() + d.mesh_note[1:])}.</span>"
+               if d.mesh_note else ""))
         self.noise_label.setText(f"Noise model: {d.noise.describe()}.")
         rows = diagnosis_rows(d)
         self.diagnosis_table.setRowCount(len(rows))
