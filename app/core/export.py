@@ -315,10 +315,12 @@ dashed, an inclusion the last diagnosis located; dotted, where it would fit near
 def write_report_html(path: str | Path, *, experiment, parameters: dict | None, cost: dict | None = None,
                       standard_error_rel: dict | None = None, identifiability_lines=(), effects=(),
                       model_force_N=None, overlays=(), mesh_lines=(), nu: float = 0.49,
-                      model_check: dict | None = None) -> Path:
+                      model_check: dict | None = None, mesh_check_lines=()) -> Path:
     """A self-contained HTML report of one identification and, given
     ``model_check`` (see :func:`_model_check_html`), of the model check.
-    ``parameters`` None: no identification was run (a model check only)."""
+    ``parameters`` None: no identification was run (a model check only).
+    ``mesh_check_lines``: the identification's mesh check in words
+    (app.core.mesh_check.MeshCheck.lines), if one was run."""
     e = html.escape
     cost = cost or {}
     ref = experiment.reference_moduli_kPa(nu)
@@ -350,6 +352,9 @@ def write_report_html(path: str | Path, *, experiment, parameters: dict | None, 
 <p>Cost: total {cost.get("total", float("nan")):.5f}, NMI {cost.get("nmi", float("nan")):.4f},
 force RMS misfit {cost.get("force_rms_N", float("nan")):.4f} N.</p>
 <h2>Identifiability</h2><pre>{e(chr(10).join(identifiability_lines))}</pre>"""
+        if mesh_check_lines:
+            ident += f"""
+<h2>Mesh check</h2><pre>{e(chr(10).join(mesh_check_lines))}</pre>"""
     doc = f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>ElastoID report: {e(experiment.name)}</title>
 <style>body{{font-family:sans-serif;max-width:980px;margin:2em auto;color:#222}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #ccc;padding:4px 10px;text-align:right}}th{{background:#eef}}figure{{display:inline-block;margin:8px}}

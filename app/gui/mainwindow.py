@@ -444,7 +444,8 @@ class MainWindow(QMainWindow):
                                      identifiability_lines=o.identifiability if o else (),
                                      model_force_N=s.model_force_N if o else self.modelcheck_panel.model_force_N(),
                                      overlays=overlays,
-                                     mesh_lines=s.mesh_quality, nu=nu, model_check=checked)
+                                     mesh_lines=s.mesh_quality, nu=nu, model_check=checked,
+                                     mesh_check_lines=o.mesh_check if o else ())
             elif kind == "vtu":
                 ex.write_vtu(path, s.mesh, s.outcome.parameters, nu)
             else:

@@ -62,6 +62,11 @@ def test_html_report_holds_parameters_force_and_overlays(tmp_path):
     assert "62.10" in text and "63.0" in text and "undetermined" in text and "&plusmn;1.0%" in text
     assert text.count("<polyline") == 2 and "data:image/png;base64," in text
     assert overlay_rgb(w, t).shape == (40, 50, 3)
+    assert "<h2>Mesh check</h2>" not in text  # none was run
+    line = "mesh check: on a mesh 0.7 times the size (6,266 vertices against 2,558; 25 s): E_B 18.07 kPa (+0.9%)"
+    text = write_report_html(tmp_path / "m.html", experiment=exp, parameters={"E_B_kPa": 17.9},
+                             mesh_check_lines=[line]).read_text()
+    assert f"<h2>Mesh check</h2><pre>{line}</pre>" in text
 
 
 def test_html_report_holds_the_model_check(tmp_path):

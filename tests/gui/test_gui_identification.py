@@ -222,3 +222,9 @@ def test_the_mesh_check_runs_on_the_result_and_joins_the_report(window, tiny_exp
     assert seen["mesh_settings"] == s.effective_mesh_settings()
     assert panel.mesh_check_button.isEnabled() and panel.run_button.isEnabled()
     assert "Mesh check done" in panel.state.text()
+    # kept with the result: in the session file, and shown again when the result is
+    kept = s.outcome.mesh_check
+    assert kept[0].startswith("mesh check: on a mesh 0.7 times the size (6,266 vertices") and len(kept) == 2
+    assert IdentificationOutcome.from_json(s.outcome.to_json()).mesh_check == kept
+    s.set_outcome(IdentificationOutcome.from_json(s.outcome.to_json()))
+    assert "Mesh check\n  mesh check: on a mesh 0.7 times the size" in panel.report.toPlainText()

@@ -95,10 +95,12 @@ class IdentificationOutcome:
     flags: dict = field(default_factory=dict)
     starts: tuple[dict, ...] = ()
     settings: IdentificationSettings | None = None
+    mesh_check: tuple[str, ...] = ()  # the result identified again on a finer mesh, in words (Check the mesh)
 
     def to_json(self) -> dict:
         d = {k: getattr(self, k) for k in ("parameters", "cost", "evaluations", "seconds", "standard_error_rel", "flags")}
         d["identifiability"] = list(self.identifiability)
+        d["mesh_check"] = list(self.mesh_check)
         d["starts"] = [dict(s) for s in self.starts]
         d["settings"] = self.settings.to_json() if self.settings else None
         return _jsonable(d)
@@ -111,7 +113,8 @@ class IdentificationOutcome:
                    identifiability=tuple(d.get("identifiability", ())),
                    standard_error_rel=dict(d.get("standard_error_rel", {})), flags=dict(d.get("flags", {})),
                    starts=tuple(d.get("starts", ())),
-                   settings=IdentificationSettings.from_json(s) if s else None)
+                   settings=IdentificationSettings.from_json(s) if s else None,
+                   mesh_check=tuple(d.get("mesh_check", ())))
 
 
 def _jsonable(x: Any):
@@ -402,6 +405,12 @@ class SessionModel:
         self.set_overlay(overlay)
         self.deformed = deformed
         self.deformed_changed.emit()
+
+    def set_mesh_check(self, lines) -> None:
+        """The outcome's mesh check (kept in the session file and the report)."""
+        if self.outcome is not None:
+            self.outcome = replace(self.outcome, mesh_check=tuple(lines))
+            self.outcome_changed.emit()
 
     def set_overlay(self, overlay) -> None:
         self.overlay = overlay

@@ -523,6 +523,8 @@ class IdentificationPanel(Panel):
             lines.append("")
             lines.append("Identifiability")
             lines += [f"  {x}" for x in out.identifiability]
+        if out.mesh_check:
+            lines += ["", "Mesh check", *(f"  {x}" for x in out.mesh_check)]
         return lines
 
     def _fill_starts(self, out) -> None:
@@ -691,7 +693,7 @@ class IdentificationPanel(Panel):
     def _mesh_checked(self, check) -> None:
         out = self.session.outcome
         lines = check.lines(out.standard_error_rel if out is not None else None)
-        self.report.appendPlainText("\nMesh check\n" + "\n".join(f"  {x}" for x in lines))
+        self.session.set_mesh_check(lines)  # the report shows it; the session file and the HTML report keep it
         self.progress.setFormat("mesh check done")
         self.state.setText(f"Mesh check done in {check.seconds:.0f} s (in the report).")
         self.status.emit(lines[0])
