@@ -399,6 +399,45 @@ def test_the_mesh_check_identifies_the_result_again_on_a_finer_mesh(tmp_path, ca
     assert "than their standard error from the data" in printed or "than its standard error" in printed, printed
 
 
+def test_the_mesh_check_keeps_fixed_moduli_fixed_and_the_image_only_level(monkeypatch):
+    """A modulus the identification held fixed stays at its value on the finer
+    mesh; with the image-only cost (NMI) and nothing fixed the moduli's level is
+    not identifiable, so the first modulus stays and the ratios are searched, as
+    the identification does (the model and the fit stubbed: which parameters the
+    finer mesh's fit searches)."""
+    from types import SimpleNamespace
+
+    import app.core.diagnose as dg
+    from app.core.experiment import read_experiment
+    from app.core.mesh_check import mesh_check
+
+    searched = []
+
+    class Finer:
+        parameter_names = ("E_B_kPa", "E_A_kPa")
+        mesh = SimpleNamespace(n_nodes=6266)
+
+        def __init__(self, cost):
+            self.cost_kind = cost
+
+        def release(self):
+            pass
+
+    def fit(problem, start, *, cancel=None, free=None):
+        searched.append(free)
+        return SimpleNamespace(parameters=dict(start), cost={})
+
+    monkeypatch.setattr(dg, "current_model", lambda exp, effects, **kw: Finer(kw.get("cost", "joint")))
+    monkeypatch.setattr(dg, "identify_from", fit)
+    exp = read_experiment(ROOT / "resources" / "demo")
+    params = {"E_B_kPa": 18.0, "E_A_kPa": 63.0}
+    for cost, fixed, free in (("joint", (), ("E_B_kPa", "E_A_kPa")), ("joint", ("E_A_kPa",), ("E_B_kPa",)),
+                              ("nmi", (), ("E_A_kPa",)), ("nmi", ("E_B_kPa",), ("E_A_kPa",))):
+        check = mesh_check(exp, (), params, 2558, fixed=fixed, cost=cost)
+        assert searched[-1] == free, (cost, fixed, searched[-1])
+        assert check.parameters == params
+
+
 def test_the_mesh_check_says_which_moduli_the_mesh_limits():
     """A modulus that moves on the finer mesh by more than its standard error from
     the data is limited by the mesh; when none does, the mesh is fine enough."""

@@ -1145,7 +1145,8 @@ def _placed(problem: EffectProblem, identified: dict, say, cancel) -> dict:
             "place_trials": n, "located_cost": dict(identified["cost"]), "place_spread": spread}
 
 
-def identify_from(problem: EffectProblem, start: dict, *, cancel=None, max_evaluations: int = 300) -> FitResult:
+def identify_from(problem: EffectProblem, start: dict, *, cancel=None, max_evaluations: int = 300,
+                  free: tuple | None = None) -> FitResult:
     """The model identified as ``elastoid identify`` does (NMI of the warped frames
     and the force), from ``start``: a diagnosis' maximum-likelihood fit of it.
 
@@ -1160,9 +1161,10 @@ def identify_from(problem: EffectProblem, start: dict, *, cancel=None, max_evalu
     an added effect gives"). Started from the likelihood's optimum it takes one
     simplex run: 1-4 s inside a diagnosis at paper size, where the model is built
     and trained already, and 27 s with the hyperelastic effect (its correction
-    refreshed on a new walk of the load path)."""
+    refreshed on a new walk of the load path). ``free``: the parameters searched
+    (default: all; the others stay at ``start``'s values)."""
     f = fit_hyperelastic if "hyperelastic" in problem.effects else fit
-    return f(problem, problem.complete(start), cancel=cancel, max_evaluations=max_evaluations)
+    return f(problem, problem.complete(start), cancel=cancel, max_evaluations=max_evaluations, free=free)
 
 
 def noise_model(problem: EffectProblem, tracked: TrackedField) -> NoiseModel:

@@ -87,14 +87,19 @@ def identification_settings(exp, mesh_settings=None, inclusion: dict | None = No
 
 
 def mesh_check(exp, effects, parameters: dict, nodes: int | None, *, mesh_settings=None,
-               inclusion: dict | None = None, scale: float | None = None, progress=None, cancel=None,
+               inclusion: dict | None = None, scale: float | None = None, fixed=(), progress=None, cancel=None,
                **options) -> MeshCheck:
     """The model of ``effects`` (with ``inclusion``'s sphere, if any) identified at
     ``parameters`` on a mesh of ``nodes`` vertices made with ``mesh_settings``
     (None: the automatic ones), identified again on a mesh ``scale`` times the
     size (None: MESH_CHECK_SCALE), from ``parameters`` (as a diagnosis identifies the model it calls for:
     :func:`app.core.diagnose.identify_from`). ``options``: the problem's ROI,
-    frames, cost, Poisson's ratio and similarity, as the first identification's."""
+    frames, cost, Poisson's ratio and similarity, as the first identification's.
+    ``fixed``: names of parameters the identification held fixed; they stay at
+    ``parameters``' values. With the image-only cost (NMI) and nothing fixed the
+    moduli's level is not identifiable, so the first modulus stays at its value
+    and the others' ratios to it are searched, as the identification does
+    (:func:`app.core.identify.identify`)."""
     from app.core.diagnose import current_model, identify_from
 
     t0 = time.perf_counter()
@@ -108,7 +113,11 @@ def mesh_check(exp, effects, parameters: dict, nodes: int | None, *, mesh_settin
                             near_kPa=None if None in near else near, progress=progress, cancel=cancel, **options)
     try:
         say("mesh check: identifying on the finer mesh")
-        res = identify_from(problem, {k: v for k, v in parameters.items() if isinstance(v, float)}, cancel=cancel)
+        free = [n for n in problem.parameter_names if n not in set(fixed)]
+        if problem.cost_kind == "nmi" and len(free) > 1 and not fixed:
+            free = free[1:]  # the level: not identifiable from the images alone
+        res = identify_from(problem, {k: v for k, v in parameters.items() if isinstance(v, float)}, cancel=cancel,
+                            free=tuple(free))
         return MeshCheck(scale, (None if nodes is None else int(nodes), int(problem.mesh.n_nodes)),
                          dict(parameters), dict(res.parameters), dict(res.cost), time.perf_counter() - t0)
     finally:

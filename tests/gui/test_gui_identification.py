@@ -219,7 +219,7 @@ def test_the_mesh_check_runs_on_the_result_and_joins_the_report(window, tiny_exp
     assert seen["effects"] == () and seen["parameters"] == params
     assert seen["cost"] == s.identification.cost and seen["nu"] == s.identification.nu
     assert seen["frames"] == s.analysis_frames() and seen["roi_px"] == s.roi_px
-    assert seen["mesh_settings"] == s.effective_mesh_settings()
+    assert seen["mesh_settings"] == s.effective_mesh_settings() and seen["fixed"] == ()  # nothing fixed here
     assert panel.mesh_check_button.isEnabled() and panel.run_button.isEnabled()
     assert "Mesh check done" in panel.state.text()
     # kept with the result: in the session file, and shown again when the result is

@@ -670,7 +670,7 @@ class IdentificationPanel(Panel):
         exp, params = s.analysis_experiment(), dict(out.parameters)
         nodes = s.mesh.n_nodes if s.mesh is not None else None
         kw = dict(mesh_settings=s.effective_mesh_settings(), roi_px=s.roi_px, frames=s.analysis_frames(),
-                  cost=settings.cost, nu=settings.nu)
+                  cost=settings.cost, nu=settings.nu, fixed=tuple(p.name for p in settings.parameters if not p.free))
 
         def work(progress, cancel):
             from app.core.mesh_check import mesh_check
