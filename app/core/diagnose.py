@@ -1916,7 +1916,7 @@ def coarse_mesh_note(exp, mesh_settings) -> str:
 # seed 30205 (nothing hidden, paper size): the current model's error was 1.77
 # times its floor and a probe slip removed 32% of it, the verdict. On twelve
 # blind paper-size phantoms (2026-12-01) the ratio was 0.96-2.46 with nothing
-# hidden (seven) and 4.49-5.80 with a probe slip found (five)
+# hidden (six) and 4.49-5.80 with a probe slip found (five)
 # (docs/model-check.md, "Findings on a thin margin, confirmed on a finer mesh")
 CONFIRM_BELOW = 3.0
 # the effects confirmed so: a hyperelastic model would walk its load path cold on
