@@ -391,6 +391,7 @@ def _diagnosis_mesh_check(args, exp, result, settings, inclusion):
     """The model the diagnosis calls for (its ``identified``: the verdict added, an
     inclusion at the place the identification found) identified again on a finer
     mesh (app.core.mesh_check); None when the diagnosis identified no model."""
+    from app.core.effects.inclusion import sphere_of
     from app.core.mesh_check import mesh_check
 
     ident = result.identified
@@ -399,9 +400,7 @@ def _diagnosis_mesh_check(args, exp, result, settings, inclusion):
             print("elastoid: --mesh-check: the diagnosis identified no model to check", file=sys.stderr)
         return None
     c = result.baseline if result.verdict == "none" else result.candidate(result.verdict)
-    sphere = ident.get("inclusion") or c.inclusion or inclusion
-    if sphere is not None:
-        sphere = {k: sphere[k] for k in ("name", "center_mm", "radius_mm")}
+    sphere = sphere_of(ident.get("inclusion") or c.inclusion or inclusion)
     mesh = getattr(c.problem, "mesh", None)
     bar = TerminalProgress(not args.quiet, 1)
     try:

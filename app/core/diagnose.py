@@ -1858,9 +1858,9 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
         try:
             confirmation = _confirmed(exp, effects, thin, base, problem, mesh_settings, inclusion, tracked,
                                       max_evaluations, say, cancel)
+        except Cancelled:
+            raise
         except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the verdict stands, unconfirmed
-            if isinstance(exc, Cancelled):
-                raise
             say(f"the finer mesh's diagnosis failed ({exc})")
             confirmation = {"effects": [c.effect for c in thin], "confirmed": None, "error": str(exc)}
         verdict = confirmed_verdict(out, tie_break, verdict, confirmation)
@@ -1973,10 +1973,8 @@ def _confirmed(exp, effects, thin: list, base: Candidate, problem: EffectProblem
         f"size")
     settings = identification_settings(exp, mesh_settings, inclusion).with_scale(MESH_CHECK_SCALE)
     near = [base.parameters.get(f"E_{n}_kPa") for n in problem.mesh.region_names]
-    fine = EffectProblem.from_experiment(problem.exp, effects=problem.effects, mesh_settings=settings,
-                                         frames=problem.frames, roi_px=problem.roi, nu=problem.nu,
-                                         cost=problem.cost_kind, inclusion=problem.inclusion,
-                                         near_kPa=None if None in near else near, progress=say, cancel=cancel)
+    fine = _model_like(problem, problem.effects, None if None in near else near, cancel, mesh_settings=settings,
+                       progress=say)
     d = None
     try:
         d = diagnose(exp, effects=effects, candidates=names, problem=fine, start=base.parameters,

@@ -133,6 +133,13 @@ def also_fits_text(inclusion: dict, top_mm: float) -> str:
     return f"{where}, which the scan ranked about as high, was meshed and fitted too and explains less ({gains})"
 
 
+def sphere_of(inclusion: dict | None) -> dict | None:
+    """An inclusion's sphere alone (name, centre, radius), without what a diagnosis
+    or a placement added to it (its score, the place its mesh was made at); None
+    for None."""
+    return None if inclusion is None else {k: inclusion[k] for k in ("name", "center_mm", "radius_mm")}
+
+
 def place_text(inclusion: dict) -> str:
     """Where a located inclusion is, as the reports say it: '(24.7, 20.0, 13.8) mm,
     radius 4.5 mm' (``inclusion``: name, center_mm, radius_mm)."""

@@ -17,12 +17,12 @@ from __future__ import annotations
 import math
 import textwrap
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
 
-from app.core.effects.inclusion import place_text
+from app.core.effects.inclusion import place_text, sphere_of
 from app.core.errors import ElastoidError
 
 Work = Callable[[Callable[[str], None], threading.Event], Any]
@@ -201,14 +201,9 @@ class ModelCheckModel:
         """The current version (its effects, inclusion sphere and parameters) identified
         again on a mesh 0.7 times the size, with the check's ROI, frames, cost and
         Poisson's ratio (app.core.mesh_check); the versions are unchanged."""
-        from dataclasses import replace
-
         check, prev, inputs = self._need_check(), self.snapshot, self.inputs
         v = check.history.current_version
         problem = check.problem
-        sphere = v.inclusion
-        if sphere is not None:
-            sphere = {k: sphere[k] for k in ("name", "center_mm", "radius_mm")}
         options = dict(roi_px=problem.roi, frames=problem.frames, cost=problem.cost_kind, nu=problem.nu)
         exp, effects, params, nodes, settings = check.exp, v.effects, dict(v.parameters), problem.mesh.n_nodes, \
             check.mesh_settings
@@ -216,12 +211,12 @@ class ModelCheckModel:
         def work(progress, cancel):
             from app.core.mesh_check import mesh_check
 
-            mc = mesh_check(exp, effects, params, nodes, mesh_settings=settings, inclusion=sphere,
+            mc = mesh_check(exp, effects, params, nodes, mesh_settings=settings, inclusion=sphere_of(v.inclusion),
                             progress=progress, cancel=cancel, **options)
             head = f"version {v.index} ({v.label})"
             lines = (head, *mc.lines())
-            return (check, inputs, replace(prev, action="mesh-check", message=f"{head}: {mc.lines()[0]}",
-                                                mesh_check=lines))
+            return (check, inputs, replace(prev, action="mesh-check", message=f"{head}: {lines[1]}",
+                                           mesh_check=lines))
 
         return work
 
