@@ -839,8 +839,10 @@ class Diagnosis:
             why = "" if v["score"] <= 0 or not v["unmet"] else f", and it is no finding: {v['unmet']}"
             parts.append(f"{e} scores {v['score']:+,.0f}{why}")
         below = "under" if k["excess_px"] < k["floor_px"] else "against"
-        return (f"{thin}. Diagnosed again {where}, the current model's error beyond the noise is {k['excess_px']:.3f} "
-                f"px, {below} its floor of {k['floor_px']:.3f} px, and {'; '.join(parts)}. What "
+        there = (f"the current model fits within the noise (its floor {k['floor_px']:.3f} px)" if k["excess_px"] <= 0
+                 else f"the current model's error beyond the noise is {k['excess_px']:.3f} px, {below} its floor of "
+                      f"{k['floor_px']:.3f} px")
+        return (f"{thin}. Diagnosed again {where}, {there}, and {'; '.join(parts)}. What "
                 f"{'it' if one else 'they'} explained was the mesh's error, not the specimen's")
 
     def masked_sentence(self) -> str:

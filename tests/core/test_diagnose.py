@@ -849,6 +849,10 @@ def test_a_finding_on_a_thin_margin_is_confirmed_on_a_finer_mesh_or_dropped():
             "error beyond the noise is 0.133 px, under its floor of 0.150 px, and probe-slip scores -379. What it "
             "explained was the mesh's error, not the specimen's") in why
     assert f"why: {d.none_text(with_masked=False)}" in d.lines() and d.rival == ""
+    # nothing left beyond the noise there (blind seed 34205 on a fresh mesh): said so, not as "0.000 px"
+    flat = Diagnosis("x", base, ranked, verdict, noise, 1.0, confirmation={**dropped, "excess_px": 0.0})
+    assert "the current model fits within the noise (its floor 0.150 px), and probe-slip scores -379" in \
+        flat.none_text()
     assert d.to_json_dict()["confirmation"] == dropped
     assert Diagnosis.from_state(d.state()).confirmation == dropped
     assert verdict_parts(d)[1] == f". {why}."
