@@ -2463,6 +2463,9 @@ class ModelVersion:
     # why the measurements do not support the effect this version added ("" when they do;
     # see support_warning)
     warning: str = ""
+    # the version identified again on a finer mesh, in words (app.core.mesh_check.MeshCheck.lines,
+    # after a head naming the version); () until it is checked
+    mesh_check: tuple = ()
 
     @property
     def label(self) -> str:
@@ -2492,6 +2495,14 @@ class ModelHistory:
         v = ModelVersion(len(self.versions), tuple(effects), dict(parameters), dict(cost), dict(misfit), note,
                          inclusion, self.current if self.versions else None, warning)
         return ModelHistory(self.versions + (v,), len(self.versions))
+
+    def with_mesh_check(self, index: int, lines) -> "ModelHistory":
+        """The same versions, version ``index`` with its mesh check's lines (the current one unchanged)."""
+        if not 0 <= index < len(self.versions):
+            raise IndexError(f"no version {index}")
+        vs = list(self.versions)
+        vs[index] = replace(vs[index], mesh_check=tuple(lines))
+        return ModelHistory(tuple(vs), self.current)
 
     def reverted(self, index: int) -> "ModelHistory":
         """The same versions with ``index`` current again (later ones are kept to compare)."""
@@ -2527,7 +2538,8 @@ class ModelHistory:
 
     @classmethod
     def from_json_dict(cls, d: dict) -> "ModelHistory":
-        vs = tuple(ModelVersion(**{**v, "effects": tuple(v["effects"])}) for v in d["versions"])
+        vs = tuple(ModelVersion(**{**v, "effects": tuple(v["effects"]), "mesh_check": tuple(v.get("mesh_check", ()))})
+                   for v in d["versions"])
         return cls(vs, int(d["current"]))
 
 
@@ -2779,6 +2791,12 @@ class ModelCheck:
         self.history = self.history.reverted(index)
         self._switch_to(problem)
         return self.history.current_version
+
+    def record_mesh_check(self, index: int, lines) -> ModelVersion:
+        """Keep version ``index``'s mesh check (its lines) with the version, so that a
+        session file and the report keep it; nothing else changes."""
+        self.history = self.history.with_mesh_check(index, lines)
+        return self.history.versions[index]
 
     def _switch_to(self, problem) -> None:
         """Make ``problem`` current; the one left keeps its model but frees its

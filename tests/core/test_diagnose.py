@@ -20,6 +20,7 @@ running this file with an empty cache and copying the new files from the cache,
 then write the experiments again.
 """
 
+import json
 import math
 import threading
 import weakref
@@ -1199,6 +1200,18 @@ def test_history_is_immutable_and_round_trips():
     assert ModelHistory.from_json_dict(h2.to_json_dict()) == h2
     with pytest.raises(IndexError):
         h2.reverted(5)
+    # a version's mesh check is kept with it, through JSON; the others and the current one unchanged
+    lines = ("version 0 (baseline)", "mesh check: on a mesh 0.7 times the size: E_B 10.0 -> 10.3 kPa (+3.0%)")
+    h3 = h2.with_mesh_check(0, lines)
+    assert h3.versions[0].mesh_check == lines and h3.versions[1] == h2.versions[1] and h3.current == 1
+    assert h2.versions[0].mesh_check == () and h3.versions[0].parameters == h2.versions[0].parameters
+    assert ModelHistory.from_json_dict(json.loads(json.dumps(h3.to_json_dict()))) == h3
+    old = h3.to_json_dict()
+    for v in old["versions"]:  # a session file saved before versions kept their mesh check
+        del v["mesh_check"]
+    assert ModelHistory.from_json_dict(old) == h2
+    with pytest.raises(IndexError):
+        h2.with_mesh_check(2, lines)
 
 
 def test_diagnose_stops_when_cancelled(visco):

@@ -76,7 +76,8 @@ def test_html_report_holds_the_model_check(tmp_path):
     mc = {"current": 1, "versions": [
         dict(version, index=0, current=False),
         dict(version, index=1, current=True, label="+ inclusion", displacement_excess_px=0.0, chi2=536.6,
-             note="added inclusion", warning="it fits worse <than> version 0")],
+             note="added inclusion", warning="it fits worse <than> version 0",
+             mesh_check=["version 1 (+ inclusion)", "mesh check: on a mesh 0.7 times the size: E_B 15.4 -> 15.9"])],
         "diagnosis": {"version": 0, "verdict": "inclusion", "head": "Verdict: inclusion",
                       "rest": ", an undescribed inclusion. A region ...", "tie": "", "noise": "force: 0.02 N",
                       "seconds": 108.0, "candidates": [
@@ -94,6 +95,9 @@ def test_html_report_holds_the_model_check(tmp_path):
     assert section.count("<polyline") == 1  # the force error is 0 in both versions: nothing to chart
     assert "displacement beyond the noise (1 = 0.233 px)" in section
     assert "<b>Verdict: inclusion</b>, an undescribed inclusion." in section
+    assert section.count("<h3>Mesh check of") == 1  # only the version that was checked
+    assert ("<h3>Mesh check of version 1 (+ inclusion)</h3><pre>mesh check: on a mesh 0.7 times the size: "
+            "E_B 15.4 -&gt; 15.9</pre>") in section
     assert '<tr style="font-weight:bold"><td>1</td>' in section and ">compressibility</td>" in section
     # without a model check the report is the identification's, as before
     plain = write_report_html(tmp_path / "p.html", experiment=exp, parameters={"E_B_kPa": 17.9},

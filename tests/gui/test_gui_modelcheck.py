@@ -468,14 +468,17 @@ def test_refine_the_inclusion_makes_a_version(window, visco_experiment, qtbot, m
     assert panel.history_table.rowCount() == 3 and panel.refine_button.isEnabled()
 
 
-def test_check_the_mesh_identifies_the_current_version_again(window, visco_experiment, qtbot, monkeypatch):
+def test_check_the_mesh_identifies_the_current_version_again(window, visco_experiment, qtbot, monkeypatch,
+                                                             tmp_path):
     """"Check the mesh" (History tab) runs app.core.mesh_check on the current
     version: its effects, its inclusion's sphere (the placement keys stripped),
     its parameters and the check's ROI, frames, cost and Poisson's ratio (the
     mesh check itself is tested end to end in tests/test_cli_batch.py; stubbed
-    here). Its lines are shown in the History tab; the versions are unchanged."""
+    here). Its lines are shown in the History tab and kept with the version (the
+    session file, the report); the version is otherwise unchanged."""
     import app.core.diagnose as dg
     import app.core.mesh_check as mc
+    from app.gui.models.modelcheck import report_data
 
     monkeypatch.setattr(dg, "locate_inclusion",
                         lambda exp, effects, **kw: {"name": "I", "center_mm": [10.0, 20.0, 22.0], "radius_mm": 3.0,
@@ -506,7 +509,19 @@ def test_check_the_mesh_identifies_the_current_version_again(window, visco_exper
     assert text.startswith(f"Mesh check of version {v.index} (+ inclusion)\nmesh check: on a mesh 0.7 times the "
                            f"size ({2 * nodes:,} vertices against {nodes:,}; 12 s): E_B "), text
     assert "(+2.0%)" in text and panel.tabs.currentIndex() == 2
-    assert panel.model.history is h and len(h) == 1 and "mesh check" in panel.state.text(), panel.state.text()
+    assert "mesh check" in panel.state.text(), panel.state.text()
+    # kept with the version (nothing else of it changed): the table, the session file, the report
+    h2 = panel.model.history
+    assert len(h2) == 1 and h2.current == h.current and replace(h2.current_version, mesh_check=()) == v
+    assert h2.current_version.mesh_check == tuple(text[len("Mesh check of "):].split("\n"))
+    note = panel.history_table.item(0, 6)
+    assert note.text().endswith("mesh checked") and "(+2.0%)" in note.toolTip()
+    path = tmp_path / "checked.json"
+    assert window._save_to(path)
+    saved = json.loads(path.read_text())["model_check"]["history"]["versions"][0]
+    assert saved["mesh_check"] == list(h2.current_version.mesh_check)
+    data = report_data(panel.model.snapshot)
+    assert data["versions"][0]["mesh_check"] == list(h2.current_version.mesh_check)
 
 
 def test_cancel_an_identification(window, visco_experiment, qtbot):

@@ -200,7 +200,8 @@ class ModelCheckModel:
     def mesh_check_work(self) -> Work:
         """The current version (its effects, inclusion sphere and parameters) identified
         again on a mesh 0.7 times the size, with the check's ROI, frames, cost and
-        Poisson's ratio (app.core.mesh_check); the versions are unchanged."""
+        Poisson's ratio (app.core.mesh_check). Its lines are kept with the version
+        (ModelCheck.record_mesh_check); nothing else changes."""
         check, prev, inputs = self._need_check(), self.snapshot, self.inputs
         v = check.history.current_version
         problem = check.problem
@@ -215,8 +216,9 @@ class ModelCheckModel:
                             progress=progress, cancel=cancel, **options)
             head = f"version {v.index} ({v.label})"
             lines = (head, *mc.lines())
-            return (check, inputs, replace(prev, action="mesh-check", message=f"{head}: {lines[1]}",
-                                           mesh_check=lines))
+            check.record_mesh_check(v.index, lines)  # kept with the version: session file and report
+            return (check, inputs, replace(prev, history=check.history, action="mesh-check",
+                                           message=f"{head}: {lines[1]}", mesh_check=lines))
 
         return work
 
@@ -531,7 +533,8 @@ def history_rows(history) -> list[dict]:
                      "force_rms_N": v.misfit.get("force_rms_N"),
                      "displacement_rms_px": v.misfit.get("displacement_rms_px"),
                      "chi2": v.misfit.get("chi2"), "note": v.note, "current": v.index == history.current,
-                     "parent": v.parent, "warning": v.warning, "status": warning_status(v.warning)})
+                     "parent": v.parent, "warning": v.warning, "status": warning_status(v.warning),
+                     "mesh_check": list(v.mesh_check)})
     return rows
 
 
@@ -556,6 +559,9 @@ def compare_text(history, i: int, j: int) -> str:
     for v in (a, b):
         if v.warning:
             lines.append(textwrap.fill(f"warning on version {v.index}: {v.warning}", 72, subsequent_indent="  "))
+    for v in (a, b) if i != j else (a,):
+        if v.mesh_check:
+            lines += ["", "Mesh check of " + "\n".join(v.mesh_check)]
     return "\n".join(lines)
 
 
