@@ -156,6 +156,28 @@ def test_diagnose_says_when_its_candidates_are_already_in_the_model(capsys, monk
     assert "viscoelastic already in the current model, not tried" in capsys.readouterr().err
 
 
+def test_diagnose_no_confirm_turns_the_finer_mesh_confirmation_off(monkeypatch):
+    """--no-confirm: a finding on a thin margin stays the verdict without the finer
+    mesh's diagnosis (app.core.diagnose.diagnose(confirm=False)); by default it is confirmed."""
+    import app.core.diagnose
+
+    asked = []
+
+    class Stop(Exception):
+        pass
+
+    def stop(*a, **k):
+        asked.append(k["confirm"])
+        raise Stop  # enough: the call's arguments are what is tested
+
+    monkeypatch.setattr(app.core.diagnose, "diagnose", stop)
+    demo = str(ROOT / "resources" / "demo")
+    for extra in ([], ["--no-confirm"]):
+        with pytest.raises(Stop):
+            main(["diagnose", demo, "--candidates", "probe-slip", "--quiet", *extra])
+    assert asked == [True, False]
+
+
 def test_diagnose_refuses_a_malformed_memory_cap_before_the_run(capsys, monkeypatch):
     """ELASTOID_MEMORY_GB is read only when memory gets short, minutes into a
     diagnosis: a value that is not a number is refused before anything runs."""
