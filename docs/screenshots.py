@@ -11,7 +11,7 @@ It drives the real window (1280 x 800) the way a user does:
 - the simulated rig recording a short ramp-hold-unload;
 - the Model check on a small synthetic experiment with a hidden viscoelastic
   effect (made here by the simulator): identify the baseline, compare, diagnose,
-  add the verdict;
+  add the verdict, check the added version's mesh;
 - the log of all of it.
 
 Options replace the demo and the model-check experiment with given folders and
@@ -281,6 +281,11 @@ def _shoot_all(args, out: Path, tmp: Path) -> list[Path]:
     d.shoot("modelcheck-diagnosis.png")
     mc.add_verdict_button.click()
     d.wait(lambda: mc.task is None, 300, "adding the verdict")
+    mc.mesh_check_button.click()  # the added version identified again on a finer mesh, kept with it
+    d.wait(lambda: mc.task is None, 900, "the mesh check")
+    if not mc.model.history.current_version.mesh_check:
+        raise RuntimeError(f"the mesh check kept nothing: {mc.state.text()}")
+    mc.compare_versions()  # the error falling from the baseline, then the mesh check's figures
     mc.tabs.setCurrentIndex(2)
     d.shoot("modelcheck-history.png")
 

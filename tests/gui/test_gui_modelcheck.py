@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import TEST_MESH, wait_task_done
 from PySide6.QtCore import QElapsedTimer, Qt, QTimer
+from PySide6.QtWidgets import QPlainTextEdit
 
 from app.core.experiment import read_experiment
 
@@ -478,7 +479,7 @@ def test_check_the_mesh_identifies_the_current_version_again(window, visco_exper
     session file, the report); the version is otherwise unchanged."""
     import app.core.diagnose as dg
     import app.core.mesh_check as mc
-    from app.gui.models.modelcheck import report_data
+    from app.gui.models.modelcheck import mesh_check_text, report_data
 
     monkeypatch.setattr(dg, "locate_inclusion",
                         lambda exp, effects, **kw: {"name": "I", "center_mm": [10.0, 20.0, 22.0], "radius_mm": 3.0,
@@ -506,14 +507,16 @@ def test_check_the_mesh_identifies_the_current_version_again(window, visco_exper
     assert kw["inclusion"] == {"name": "I", "center_mm": [10.0, 20.0, 22.0], "radius_mm": 3.0}
     assert kw["roi_px"] == problem.roi and kw["frames"] == problem.frames and kw["nu"] == problem.nu
     text = panel.compare_text.toPlainText()
-    assert text.startswith(f"Mesh check of version {v.index} (+ inclusion)\nmesh check: on a mesh 0.7 times the "
-                           f"size ({2 * nodes:,} vertices against {nodes:,}; 12 s): E_B "), text
+    assert text.startswith(f"Mesh check of version {v.index} (+ inclusion)\nmesh check: on a mesh 0.7 times the "), text
+    assert f"size ({2 * nodes:,} vertices against {nodes:,}; 12 s): E_B " in " ".join(text.split()), text
+    assert panel.compare_text.lineWrapMode() == QPlainTextEdit.WidgetWidth  # its long lines wrapped in the box
     assert "(+2.0%)" in text and panel.tabs.currentIndex() == 2
     assert "mesh check" in panel.state.text(), panel.state.text()
     # kept with the version (nothing else of it changed): the table, the session file, the report
     h2 = panel.model.history
     assert len(h2) == 1 and h2.current == h.current and replace(h2.current_version, mesh_check=()) == v
-    assert h2.current_version.mesh_check == tuple(text[len("Mesh check of "):].split("\n"))
+    kept = h2.current_version.mesh_check
+    assert kept[0] == f"version {v.index} (+ inclusion)" and mesh_check_text(kept) == text
     note = panel.history_table.item(0, 6)
     assert note.text().endswith("mesh checked") and "(+2.0%)" in note.toolTip()
     path = tmp_path / "checked.json"

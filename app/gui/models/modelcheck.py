@@ -15,7 +15,6 @@ rows the panel draws (also Qt-free, so they are tested without a window).
 from __future__ import annotations
 
 import math
-import textwrap
 import threading
 from dataclasses import dataclass, replace
 from typing import Any, Callable
@@ -558,11 +557,18 @@ def compare_text(history, i: int, j: int) -> str:
         lines.append(f"  {names.get(k, k):15s} {_num(x):>7s} -> {_num(y):>7s} {ratio}")
     for v in (a, b):
         if v.warning:
-            lines.append(textwrap.fill(f"warning on version {v.index}: {v.warning}", 72, subsequent_indent="  "))
+            lines.append(f"warning on version {v.index}: {v.warning}")  # the box wraps it at its width
     for v in (a, b) if i != j else (a,):
         if v.mesh_check:
-            lines += ["", "Mesh check of " + "\n".join(v.mesh_check)]
+            lines += ["", mesh_check_text(v.mesh_check)]
     return "\n".join(lines)
+
+
+def mesh_check_text(lines) -> str:
+    """A version's mesh check (its head, then app.core.mesh_check.MeshCheck.lines) for
+    the History tab's comparison box (which wraps long lines at its width)."""
+    head, *rest = lines
+    return "\n".join([f"Mesh check of {head}", *rest])
 
 
 def arrow_segments(points: np.ndarray, vectors: np.ndarray, scale: float = 1.0, head_px: float = 3.0,

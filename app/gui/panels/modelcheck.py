@@ -37,7 +37,7 @@ from app.core.export import verdict_html
 
 from ..models.modelcheck import (ModelCheckModel, arrow_segments, auto_difference_scale, compare_text,
                                  diagnosis_rows, frame_label, frame_outlines, history_rows, label_place,
-                                 outline_shapes, outlines_note, parameters_text, verdict_parts)
+                                 mesh_check_text, outline_shapes, outlines_note, parameters_text, verdict_parts)
 from ..models.session import SessionModel
 from ..style import FORCE_KEY, force_pens, mono_font, region_color, style_plot
 from ..workers import Task
@@ -470,7 +470,7 @@ class ModelCheckPanel(Panel):
         self.compare_text.setObjectName("report")
         self.compare_text.setReadOnly(True)
         self.compare_text.setFont(mono_font())
-        self.compare_text.setLineWrapMode(QPlainTextEdit.NoWrap)
+        self.compare_text.setLineWrapMode(QPlainTextEdit.WidgetWidth)  # the mesh check's long lines
         self.compare_text.setPlaceholderText("Choose two versions and press Compare: what was added, how the "
                                              "parameters moved, and the ratio of each error.")
         cl.addWidget(self.compare_text, 1)
@@ -676,7 +676,7 @@ class ModelCheckPanel(Panel):
         elif snap.action in ("add", "refine"):
             self.tabs.setCurrentIndex(2)
         elif snap.action == "mesh-check":
-            self.compare_text.setPlainText("Mesh check of " + "\n".join(snap.mesh_check))
+            self.compare_text.setPlainText(mesh_check_text(snap.mesh_check))
             self.tabs.setCurrentIndex(2)
         elif snap.action == "restore":
             self.tabs.setCurrentIndex(2)
