@@ -877,6 +877,40 @@ def test_a_finding_on_a_thin_margin_is_confirmed_on_a_finer_mesh_or_dropped():
     assert confirmed_verdict([other, slip], None, "probe-slip", dropped) == "compressibility"
 
 
+def test_the_confirmation_is_not_run_when_memory_is_short(visco, monkeypatch):
+    """The confirmation's finer models take about CONFIRM_BYTES_PER_UNKNOWN per
+    unknown of the current model (a blind wide phantom went from 3.6 to 9.2 GB).
+    When that much is not free, nothing is built; the verdict stands, unconfirmed,
+    and the report says why and what to do."""
+    import app.core.diagnose as dg
+    from app.core import memory
+
+    exp, d0 = visco
+    problem = d0.baseline.problem
+    asked = []
+
+    def can_hold(n, reserve=memory.RESERVE_BYTES):
+        asked.append(n)
+        return False
+
+    def must_not_build(*a, **k):
+        raise AssertionError("the finer model was built")
+
+    monkeypatch.setattr(memory, "can_hold", can_hold)
+    monkeypatch.setattr(memory, "available_bytes", lambda: 2.5e9)
+    monkeypatch.setattr(dg, "_model_like", must_not_build)
+    thin = [d0.candidate("viscoelastic")]
+    with pytest.raises(dg.ElastoidError, match="memory is short: 2.5 GB left, about") as err:
+        dg._confirmed(exp, (), thin, d0.baseline, problem, ID_MESH, None, d0.tracked, 200, lambda s: None, None)
+    assert asked == [dg.CONFIRM_BYTES_PER_UNKNOWN * problem.fe.space.n_dofs]
+    k = {"effects": ["viscoelastic"], "confirmed": None, "error": str(err.value)}
+    d = dg.Diagnosis("x", d0.baseline, d0.candidates, "viscoelastic", d0.noise, 1.0, confirmation=k)
+    line = next(x for x in d.lines() if x.startswith("not confirmed: "))
+    assert "would have confirmed it was not run (memory is short: 2.5 GB left" in line
+    assert line.endswith("diagnose again where more memory is free (or with ELASTOID_MEMORY_GB higher, if it "
+                         "capped the memory) to tell"), line
+
+
 def test_a_mesh_coarser_than_the_automatic_one_is_said():
     """On the paper's phantom with a 30 x 14 mm face the automatic sizes are 10
     and 2.0 mm; a 2.5 mm face edge gave a probe slip with nothing hidden on both
