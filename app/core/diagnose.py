@@ -1860,7 +1860,10 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     verdict = choose_verdict(out, tie_break)
     confirmation = None
     thin = [c for c in out if c.score > 0 and thin_finding(base, c)]
+    made_room = False
     if confirm and not _confirming and verdict in [c.effect for c in thin]:
+        if not memory.can_hold(CONFIRM_BYTES_PER_UNKNOWN * problem.fe.space.n_dofs):
+            made_room = _make_room(out, prep, problem)
         try:
             confirmation = _confirmed(exp, effects, thin, base, problem, mesh_settings, inclusion, tracked,
                                       max_evaluations, say, cancel)
@@ -1882,7 +1885,8 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
             say(f"{verdict}: not identified ({exc})")
         c.problem.release(keep=problem)
     return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked,
-                     tie_break, _memory_note(prep, n_lean), masked, screen, confirmation,
+                     tie_break, _memory_note(prep, n_lean, made_room, _refused(confirmation)), masked, screen,
+                     confirmation,
                      "" if _confirming else coarse_mesh_note(exp, mesh_settings))
 
 
@@ -2108,7 +2112,35 @@ def _masked_pair(ranked, base: Candidate, guess, tracked, noise, ln_n: float, sa
             "estimated_chi2": named["estimated_chi2"], "best_single_chi2": round(best_single, 1)}, screen
 
 
-def _memory_note(prep: _InclusionPrep | None, n_lean: int) -> str:
+def _make_room(ranked, prep: _InclusionPrep | None, problem: EffectProblem) -> bool:
+    """Before the confirmation, when memory is short: let go of the fitted models
+    that no verdict can need (the candidates that are no finding, rebuilt at their
+    parameters if one is added; the inclusion's models unless it is a finding) and
+    of the current model's factorization (refactorized if it is needed). True when
+    anything was let go."""
+    import gc
+
+    findings = {c.effect for c in ranked if c.material and c.score > 0}
+    dropped = False
+    for c in ranked:
+        if c.effect not in findings and c.problem is not None and c.problem is not problem:
+            c.drop_model()
+            dropped = True
+    if prep is not None and "inclusion" not in findings and prep.places:
+        prep.places.clear()
+        dropped = True
+    problem.release()
+    gc.collect()
+    return dropped
+
+
+def _refused(confirmation: dict | None) -> bool:
+    """Whether the confirmation was not run for want of memory (see _confirmed)."""
+    return bool(confirmation and confirmation["confirmed"] is None
+                and confirmation.get("error", "").startswith("memory is short"))
+
+
+def _memory_note(prep: _InclusionPrep | None, n_lean: int, made_room: bool = False, refused: bool = False) -> str:
     """What the diagnosis did differently because memory was short, in words."""
     done = []
     if prep is not None and prep.deferred:
@@ -2116,10 +2148,16 @@ def _memory_note(prep: _InclusionPrep | None, n_lean: int) -> str:
     if n_lean:
         done.append(f"the hyperelastic solve kept no factorized tangent at {n_lean} of the travels it solves for "
                     "(it refactorizes there instead)")
+    if made_room:
+        done.append("before the finer mesh's diagnosis, the fitted models of the candidates that are no finding "
+                    "were let go (one is rebuilt at its fitted parameters if you add it)")
+    if refused:
+        done.append("the finding on a thin margin was not diagnosed again on a finer mesh (see not confirmed)")
     if not done:
         return ""
-    return (f"memory was short, so {'; '.join(done)}. The results are the same; only the time grew "
-            f"(see ELASTOID_MEMORY_GB in docs/user-guide.md)")
+    same = ("The results are the same but for that confirmation; otherwise only the time grew" if refused else
+            "The results are the same; only the time grew")
+    return f"memory was short, so {'; '.join(done)}. {same} (see ELASTOID_MEMORY_GB in docs/user-guide.md)"
 
 
 def _tie_break(ranked, problem: EffectProblem, tracked, noise, max_evaluations, say, cancel) -> TieBreak | None:

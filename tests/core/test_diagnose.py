@@ -907,8 +907,46 @@ def test_the_confirmation_is_not_run_when_memory_is_short(visco, monkeypatch):
     d = dg.Diagnosis("x", d0.baseline, d0.candidates, "viscoelastic", d0.noise, 1.0, confirmation=k)
     line = next(x for x in d.lines() if x.startswith("not confirmed: "))
     assert "would have confirmed it was not run (memory is short: 2.5 GB left" in line
+    assert dg._refused(k) and not dg._refused({**k, "error": "fTetWild failed"}) and not dg._refused(None)
     assert line.endswith("diagnose again where more memory is free (or with ELASTOID_MEMORY_GB higher, if it "
                          "capped the memory) to tell"), line
+
+
+def test_short_of_memory_the_confirmation_first_lets_go_of_models_no_verdict_needs():
+    """Before the finer mesh's models are built on a machine short of memory, the
+    candidates that are no finding give up their fitted models (rebuilt if added),
+    and so do the inclusion's models unless it is a finding; the findings keep
+    theirs (one may be the verdict, identified from its model), and the current
+    model's factorization is released. The report's memory line says so."""
+    from types import SimpleNamespace
+
+    from app.core.diagnose import Candidate, _make_room, _memory_note
+
+    released = []
+    current = SimpleNamespace(release=lambda: released.append("current"))
+
+    def cand(effect, score, material):
+        return Candidate(effect, (effect,), {"E_B_kPa": 18.0}, {}, {"chi2": 1.0}, 1, score, "", material=material,
+                         problem=SimpleNamespace(name=effect))
+
+    slip, comp, visco, incl = (cand("probe-slip", 180.0, True), cand("compressibility", 120.0, True),
+                               cand("viscoelastic", -14.0, False), cand("inclusion", 40.0, False))
+    prep = SimpleNamespace(places=[("guess", 30.0, "model", "reference")])
+    assert _make_room([slip, comp, visco, incl], prep, current) is True
+    assert slip.problem is not None and comp.problem is not None  # findings: either may be the verdict
+    assert visco.problem is None and incl.problem is None and visco.fitted and incl.fitted  # rebuilt if added
+    assert prep.places == [] and released == ["current"]
+    found = cand("inclusion", 400.0, True)
+    prep = SimpleNamespace(places=[("guess", 30.0, "model", "reference")])
+    _make_room([found, slip], prep, current)
+    assert found.problem is not None and len(prep.places) == 1
+    note = _memory_note(None, 0, made_room=True)
+    assert note.startswith("memory was short, so before the finer mesh's diagnosis, the fitted models of the "
+                           "candidates that are no finding were let go"), note
+    assert _memory_note(None, 0) == ""
+    refused = _memory_note(None, 0, made_room=True, refused=True)
+    assert "the finding on a thin margin was not diagnosed again on a finer mesh (see not confirmed). The results " \
+           "are the same but for that confirmation" in refused, refused
 
 
 def test_a_mesh_coarser_than_the_automatic_one_is_said():
