@@ -2116,11 +2116,12 @@ def _make_room(ranked, prep: _InclusionPrep | None, problem: EffectProblem) -> b
     """Before the confirmation, when memory is short: let go of the fitted models
     that no verdict can need (the candidates that are no finding, rebuilt at their
     parameters if one is added; the inclusion's models unless it is a finding) and
-    of the current model's factorization (refactorized if it is needed). True when
-    anything was let go."""
+    of the current model's factorization (refactorized if it is needed). The
+    boundary effects keep theirs: the masked-pair screen scans them if the verdict
+    becomes none (_masked_pair). True when anything was let go."""
     import gc
 
-    findings = {c.effect for c in ranked if c.material and c.score > 0}
+    findings = {c.effect for c in ranked if c.material and c.score > 0} | set(MASKING_EFFECTS)
     dropped = False
     for c in ranked:
         if c.effect not in findings and c.problem is not None and c.problem is not problem:

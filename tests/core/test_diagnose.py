@@ -916,8 +916,9 @@ def test_short_of_memory_the_confirmation_first_lets_go_of_models_no_verdict_nee
     """Before the finer mesh's models are built on a machine short of memory, the
     candidates that are no finding give up their fitted models (rebuilt if added),
     and so do the inclusion's models unless it is a finding; the findings keep
-    theirs (one may be the verdict, identified from its model), and the current
-    model's factorization is released. The report's memory line says so."""
+    theirs (one may be the verdict, identified from its model), as do the boundary
+    effects (the masked-pair screen scans them), and the current model's
+    factorization is released. The report's memory line says so."""
     from types import SimpleNamespace
 
     from app.core.diagnose import Candidate, _make_room, _memory_note
@@ -929,11 +930,13 @@ def test_short_of_memory_the_confirmation_first_lets_go_of_models_no_verdict_nee
         return Candidate(effect, (effect,), {"E_B_kPa": 18.0}, {}, {"chi2": 1.0}, 1, score, "", material=material,
                          problem=SimpleNamespace(name=effect))
 
-    slip, comp, visco, incl = (cand("probe-slip", 180.0, True), cand("compressibility", 120.0, True),
-                               cand("viscoelastic", -14.0, False), cand("inclusion", 40.0, False))
+    slip, comp, visco, incl, slide = (cand("probe-slip", 180.0, True), cand("compressibility", 120.0, True),
+                                      cand("viscoelastic", -14.0, False), cand("inclusion", 40.0, False),
+                                      cand("sliding-bottom", 30.0, False))
     prep = SimpleNamespace(places=[("guess", 30.0, "model", "reference")])
-    assert _make_room([slip, comp, visco, incl], prep, current) is True
+    assert _make_room([slip, comp, visco, incl, slide], prep, current) is True
     assert slip.problem is not None and comp.problem is not None  # findings: either may be the verdict
+    assert slide.problem is not None  # the masked-pair screen scans it if the verdict becomes none
     assert visco.problem is None and incl.problem is None and visco.fitted and incl.fitted  # rebuilt if added
     assert prep.places == [] and released == ["current"]
     found = cand("inclusion", 400.0, True)
