@@ -428,6 +428,15 @@ def test_a_near_tie_goes_to_the_effect_whose_pattern_the_misfit_has():
     d = diag(("viscoelastic", 217807.0, True, 0.99), ("compressibility", 326.0, True, 0.35))
     assert d.rival == "" and d.tie_advice() == "" and d.to_json_dict()["rival"] is None
     assert diag(("compressibility", 100.0, False, 0.9)).verdict == "none"
+    # a third finding of the near tie is named too (blind slip+31000 rerun on a fresh inclusion mesh: the
+    # hidden slip third at +1,057 behind an inclusion, +1,146, and compressibility, +1,108)
+    d = diag(("inclusion", 1146.0, True, 0.96), ("compressibility", 1108.0, True, 0.95),
+             ("probe-slip", 1057.0, True, 0.98))
+    assert d.verdict == "inclusion" and d.rival == "compressibility"
+    advice = d.tie_advice()
+    assert "; probe-slip (+1,057) is in the near tie too: these measurements barely separate them." in advice, advice
+    assert "Use what you know of the setup: an undescribed inclusion" in advice and ", or probe slides on the " \
+        "surface?" in advice, advice
 
 
 def test_a_near_tie_of_two_effects_is_settled_by_fitting_them_together():
