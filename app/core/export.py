@@ -290,7 +290,8 @@ data allow).</p>
 <h3>Error across versions</h3>{chart}"""]
     for v in mc["versions"]:
         if v.get("mesh_check"):
-            out.append(f"<h3>Mesh check of {e(v['mesh_check'][0])}</h3><pre>{e(chr(10).join(v['mesh_check'][1:]))}</pre>")
+            head, *rest = v["mesh_check"]
+            out.append(f"<h3>Mesh check of {e(head)}</h3><pre>{e(chr(10).join(rest))}</pre>")
     maps = mc.get("maps") or []
     if maps:
         figs = "".join(f'<figure><img src="data:image/png;base64,{_png_b64(m["rgb"])}"/>'

@@ -981,7 +981,7 @@ class ModelCheckPanel(Panel):
         for i, r in enumerate(rows):
             mark = "\u25b6 " if r["current"] else ""
             note = f"\u26a0 {r['note']}: {r['status']}" if r["warning"] else r["note"]
-            if r["mesh_check"]:  # the first line after its head: what changed on the finer mesh
+            if r["mesh_check"]:  # its figures in the tooltip
                 note = f"{note}; mesh checked" if note else "mesh checked"
             cells = [f"{mark}{r['index']}", r["label"], r["parameters"], _fmt(r["force_rms_N"], 4),
                      _fmt(r["displacement_rms_px"], 3), _fmt(r["chi2"], 1), note]
@@ -989,7 +989,7 @@ class ModelCheckPanel(Panel):
                 tip = ("the current version" if r["current"] and col == 0
                        else r["warning"] if r["warning"] and col in (1, 6) else "")
                 if col == 6 and r["mesh_check"]:
-                    tip = "\n\n".join(x for x in (tip, "Mesh check of " + "\n".join(r["mesh_check"])) if x)
+                    tip = "\n\n".join(x for x in (tip, mesh_check_text(r["mesh_check"])) if x)
                 it = _item(text, bold=r["current"], tip=tip)
                 if r["warning"] and col == 6:
                     it.setForeground(QColor("#b26a00"))
