@@ -809,7 +809,7 @@ class Diagnosis:
         if not k:
             return ""
         if k["confirmed"] is None:
-            short = k["error"].startswith("memory is short")
+            short = _refused(k)
             return (f"{' and '.join(k['effects'])} rest{'s' if len(k['effects']) == 1 else ''} on a thin margin, "
                     f"and the diagnosis on a finer mesh that would have confirmed it "
                     f"{'was not run' if short else 'failed'} ({k['error']}): the model's own mesh error may be what "
@@ -1874,7 +1874,7 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     thin = [c for c in out if c.score > 0 and thin_finding(base, c)]
     made_room = False
     if confirm and not _confirming and verdict in [c.effect for c in thin]:
-        if not memory.can_hold(CONFIRM_BYTES_PER_UNKNOWN * problem.fe.space.n_dofs):
+        if not memory.can_hold(_confirmation_bytes(problem)):
             made_room = _make_room(out, prep, problem)
         try:
             confirmation = _confirmed(exp, effects, thin, base, problem, mesh_settings, inclusion, tracked,
@@ -1952,6 +1952,13 @@ CONFIRMED_EFFECTS = JOINT_EFFECTS
 # 1.73 to 5.12 GB (34 kB) once the finer model's factorization was released before
 # the candidate's was made
 CONFIRM_BYTES_PER_UNKNOWN = 40e3
+# how the confirmation's error starts when it was not run for want of memory (_refused)
+MEMORY_SHORT = "memory is short"
+
+
+def _confirmation_bytes(problem: EffectProblem) -> float:
+    """The memory the confirmation of ``problem``'s findings would add (CONFIRM_BYTES_PER_UNKNOWN)."""
+    return CONFIRM_BYTES_PER_UNKNOWN * problem.fe.space.n_dofs
 
 
 def thin_finding(base: Candidate, c: Candidate) -> bool:
@@ -1999,9 +2006,9 @@ def _confirmed(exp, effects, thin: list, base: Candidate, problem: EffectProblem
 
     t0 = time.perf_counter()
     names = [c.effect for c in thin]
-    wanted = CONFIRM_BYTES_PER_UNKNOWN * problem.fe.space.n_dofs
+    wanted = _confirmation_bytes(problem)
     if not memory.can_hold(wanted):  # not built: a machine out of memory would lose the whole diagnosis
-        raise ElastoidError(f"memory is short: {memory.describe(memory.available_bytes())} left, about "
+        raise ElastoidError(f"{MEMORY_SHORT}: {memory.describe(memory.available_bytes())} left, about "
                             f"{memory.describe(wanted + memory.RESERVE_BYTES)} wanted for the finer mesh's models")
     say(f"{' and '.join(names)}: found on a thin margin; diagnosing again on a mesh {MESH_CHECK_SCALE:g} times the "
         f"size")
@@ -2152,7 +2159,7 @@ def _make_room(ranked, prep: _InclusionPrep | None, problem: EffectProblem) -> b
 def _refused(confirmation: dict | None) -> bool:
     """Whether the confirmation was not run for want of memory (see _confirmed)."""
     return bool(confirmation and confirmation["confirmed"] is None
-                and confirmation.get("error", "").startswith("memory is short"))
+                and confirmation.get("error", "").startswith(MEMORY_SHORT))
 
 
 def _memory_note(prep: _InclusionPrep | None, n_lean: int, made_room: bool = False, refused: bool = False) -> str:
