@@ -158,8 +158,23 @@ def test_identify_compare_diagnose_add_and_revert(make_window, visco_experiment,
     assert "Gaussian" in panel.noise_label.text() and "tracked blocks" in panel.noise_label.text()
     assert panel.tabs.currentIndex() == 1
     assert panel.add_verdict_button.isEnabled() and "viscoelastic" in panel.add_verdict_button.text()
+    # each cell shows its evidence's first clause; the whole one is under the table (the verdict's
+    # until a row is selected), and how the verdict is made is one click away
+    from app.gui.models.modelcheck import diagnosis_rows, evidence_head
+
+    rows = diagnosis_rows(d)
+    for i, r in enumerate(rows):
+        assert panel.diagnosis_table.item(i, 4).text() == evidence_head(r["evidence"])
+        assert panel.diagnosis_table.item(i, 4).toolTip() == r["evidence"]
+    full = rows[0]["evidence"]
+    assert full[1:] in panel.evidence_label.text() and "viscoelastic" in panel.evidence_label.text()
+    assert not panel.rule_label.isVisibleTo(panel) and "Show how" in panel.rule_toggle.text()
+    panel.rule_toggle.linkActivated.emit("#")
+    assert panel.rule_label.isVisibleTo(panel) and "Hide how" in panel.rule_toggle.text()
+    assert "BIC" in panel.rule_label.text()
     panel.diagnosis_table.selectRow(1)
     assert panel.add_selected_button.isEnabled() and "probe-slip" in panel.add_selected_button.text()
+    assert rows[1]["evidence"][1:] in panel.evidence_label.text() and "probe-slip" in panel.evidence_label.text()
 
     # add the verdict: a second version, and the error falls
     _click_and_wait(qtbot, panel, panel.add_verdict_button)
@@ -561,6 +576,17 @@ def test_core_errors_reach_the_user(window, noise_experiment):
 # ---------------------------------------------------------------------------
 # the Qt-free helpers
 # ---------------------------------------------------------------------------
+
+
+def test_evidence_head_is_the_first_clause_cut_at_a_word():
+    from app.gui.models.modelcheck import evidence_head
+
+    assert evidence_head("the force relaxes 31% during the hold") == "the force relaxes 31% during the hold"
+    assert evidence_head("the force relaxes 31%; the model keeps it") == "the force relaxes 31% \u2026"
+    long = "the tissue changes volume under the probe " * 5
+    head = evidence_head(long, limit=60)
+    assert head.endswith(" \u2026") and len(head) <= 62 and long.startswith(head[:-2])
+    assert evidence_head("") == ""
 
 
 def test_arrows_and_difference_scale():

@@ -443,15 +443,32 @@ def score_text(score: float) -> str:
     return "could not be fitted" if not math.isfinite(score) else f"{score:+.1f}"
 
 
+EVIDENCE_HEAD_CHARS = 120
+
+
+def evidence_head(text: str, limit: int = EVIDENCE_HEAD_CHARS) -> str:
+    """The start of a candidate's evidence, for a table cell: its first clause (up
+    to the first "; "), cut at a word within ``limit`` characters, with an
+    ellipsis when anything was left out (the whole text goes beside the table)."""
+    text = text.strip()
+    head = text.split("; ", 1)[0]
+    if len(head) > limit:
+        cut = head[:limit].rsplit(" ", 1)[0]
+        head = (cut if len(cut) > limit // 2 else head[:limit]).rstrip(",;:")
+    return head if head == text else head + " \u2026"
+
+
 def diagnosis_rows(diagnosis) -> list[dict]:
-    """One row per candidate, ranked: rank, effect, title, score, key parameters, evidence, verdict?"""
+    """One row per candidate, ranked: rank, effect, title, score, key parameters,
+    evidence (and its head, :func:`evidence_head`), verdict?"""
     from app.core.effects import INFO
 
     rows = []
     for i, c in enumerate(diagnosis.candidates, 1):
         rows.append({"rank": i, "effect": c.effect, "title": INFO[c.effect].title if c.effect in INFO else "",
                      "score": c.score, "score_text": score_text(c.score), "parameters": key_parameters(c),
-                     "evidence": c.explanation or "", "verdict": c.effect == diagnosis.verdict,
+                     "evidence": c.explanation or "", "evidence_head": evidence_head(c.explanation or ""),
+                     "verdict": c.effect == diagnosis.verdict,
                      "fitted": c.fitted})
     return rows
 

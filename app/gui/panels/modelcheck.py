@@ -350,25 +350,41 @@ class ModelCheckPanel(Panel):
         lay.addWidget(self.noise_label)
         self.diagnosis_table = _table(["#", "Effect", "Score (BIC)", "Key parameters", "Evidence"])
         hh = self.diagnosis_table.horizontalHeader()
-        for c in range(4):
+        for c in range(3):
             hh.setSectionResizeMode(c, QHeaderView.ResizeToContents)
+        # the parameters wrap within about 40 characters, and each evidence shows its
+        # first clause: at 1280 x 800 one candidate's whole evidence had filled the view
+        hh.setSectionResizeMode(3, QHeaderView.Interactive)
         hh.setSectionResizeMode(4, QHeaderView.Stretch)
         self.diagnosis_table.itemSelectionChanged.connect(self._refresh_enabled)
+        self.diagnosis_table.itemSelectionChanged.connect(self._show_evidence)
         hh.sectionResized.connect(lambda *_: self.diagnosis_table.resizeRowsToContents())
         lay.addWidget(self.diagnosis_table, 1)
-        lay.addWidget(hint("Score = chi2(current) - chi2(current + effect) - k ln N: the drop of the misfit under "
-                           "the noise model, less what the effect's k parameters cost (BIC). The verdict is the best "
-                           "positive score among the effects that also remove at least "
-                           f"{MATERIAL_FRACTION:.0%} of the error beyond the noise or lower the chi2 by "
-                           f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement (and move a Poisson's ratio at "
-                           f"least {NU_NEGLIGIBLE} from the model's, or make a located inclusion at least "
-                           f"{INCLUSION_RATIO:g} times stiffer or softer than its tissue), else none. Among those "
-                           f"scoring at least {NEAR_TIE:.0%} of the best (a near tie), the verdict is the one still "
-                           "needed when the two best are fitted together, else the one whose pattern the misfit has "
-                           "most closely (a located inclusion, placed where the misfit is, does not win by its "
-                           "pattern over a better score). A verdict of none names any other effect that fits at "
-                           f"least as well and would move a modulus by more than {UNRESOLVED_SHIFT:.0%}: the moduli "
-                           "then rest on the setup ruling it out."))
+        self.evidence_label = hint("")
+        self.evidence_label.setTextFormat(Qt.RichText)
+        self.evidence_label.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        lay.addWidget(self.evidence_label)
+        self.rule_label = hint("Score = chi2(current) - chi2(current + effect) - k ln N: the drop of the misfit "
+                               "under the noise model, less what the effect's k parameters cost (BIC). The verdict "
+                               "is the best positive score among the effects that also remove at least "
+                               f"{MATERIAL_FRACTION:.0%} of the error beyond the noise or lower the chi2 by "
+                               f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement (and move a Poisson's ratio at "
+                               f"least {NU_NEGLIGIBLE} from the model's, or make a located inclusion at least "
+                               f"{INCLUSION_RATIO:g} times stiffer or softer than its tissue), else none. Among "
+                               f"those scoring at least {NEAR_TIE:.0%} of the best (a near tie), the verdict is the "
+                               "one still needed when the two best are fitted together, else the one whose pattern "
+                               "the misfit has most closely (a located inclusion, placed where the misfit is, does "
+                               "not win by its pattern over a better score). A verdict of none names any other "
+                               "effect that fits at least as well and would move a modulus by more than "
+                               f"{UNRESOLVED_SHIFT:.0%}: the moduli then rest on the setup ruling it out.")
+        self.rule_label.setVisible(False)
+        self.rule_toggle = hint("")
+        self.rule_toggle.setTextFormat(Qt.RichText)
+        self.rule_toggle.linkActivated.connect(lambda *_: self.show_rule(not self.rule_label.isVisibleTo(w)))
+        self.diagnosis_table.horizontalHeaderItem(2).setToolTip(self.rule_label.text())
+        lay.addWidget(self.rule_toggle)
+        lay.addWidget(self.rule_label)
+        self.show_rule(False)
         b = QHBoxLayout()
         self.add_verdict_button = QPushButton("Add verdict")
         self.add_verdict_button.setObjectName("primary")
@@ -927,6 +943,7 @@ class ModelCheckPanel(Panel):
             self.verdict_label.setText("No diagnosis yet: identify a model, then press Diagnose.")
             self.noise_label.setText("")
             self.diagnosis_current.setText("")
+            self.evidence_label.setText("")
             return
         self.verdict_label.setText(verdict_html(verdict_parts(d), "color:#b26a00"))
         b = d.baseline
@@ -947,15 +964,39 @@ class ModelCheckPanel(Panel):
         rows = diagnosis_rows(d)
         self.diagnosis_table.setRowCount(len(rows))
         for i, r in enumerate(rows):
-            cells = [str(r["rank"]), r["effect"], r["score_text"], r["parameters"], r["evidence"]]
+            cells = [str(r["rank"]), r["effect"], r["score_text"], r["parameters"], r["evidence_head"]]
+            tips = ["", r["title"], "", r["parameters"], r["evidence"]]
             for col, text in enumerate(cells):
-                it = _item(text, bold=r["verdict"], tip=r["title"] if col == 1 else text)
+                it = _item(text, bold=r["verdict"], tip=tips[col] or text)
                 if col == 2:
                     it.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
                 if r["verdict"]:
                     it.setBackground(QBrush(QColor(VERDICT_BG)))
                 self.diagnosis_table.setItem(i, col, it)
-        self.diagnosis_table.resizeRowsToContents()
+        tb = self.diagnosis_table
+        tb.setColumnWidth(3, min(tb.sizeHintForColumn(3), 40 * tb.fontMetrics().averageCharWidth()))
+        tb.resizeRowsToContents()
+        self._show_evidence()
+
+    def show_rule(self, visible: bool) -> None:
+        """Show or hide how the scores and the verdict are made (hidden at first)."""
+        self.rule_label.setVisible(visible)
+        self.rule_toggle.setText(f"<a href='#'>{'Hide' if visible else 'Show'} how the scores and the verdict are "
+                                 "made</a>")
+
+    def _show_evidence(self) -> None:
+        """Beside the table, the whole evidence of the selected candidate, else of the verdict's (else the first)."""
+        s = self.model.snapshot
+        rows = diagnosis_rows(s.diagnosis) if s is not None and s.diagnosis is not None else []
+        if not rows:
+            self.evidence_label.setText("")
+            return
+        sel = self.selected_candidate()
+        r = sel or next((r for r in rows if r["verdict"]), rows[0])
+        text = r["evidence"] or "no evidence recorded"
+        self.evidence_label.setText(f"<b>{html.escape(r['effect'])}</b> ({html.escape(r['score_text'])}): "
+                                    f"{html.escape(text[:1].upper() + text[1:])}."
+                                    + ("" if sel else " <i>(Select a row to read another candidate's evidence.)</i>"))
 
     def verdict_row(self) -> int | None:
         """The table row holding the verdict (None when the verdict is none)."""
