@@ -186,6 +186,19 @@ KEEP_ITERATIONS = 12
 FACTOR_SLOTS = 16
 
 
+def anderson_step(X: list[np.ndarray], G: list[np.ndarray]) -> np.ndarray:
+    """The Anderson-mixed step from the iterates ``X`` and their fixed-point steps
+    ``G`` (oldest first; the last step alone when there is one pair): the last
+    step less the combination of the earlier differences that best cancels it."""
+    g = G[-1]
+    if len(G) < 2:
+        return g
+    dG = np.column_stack([G[j + 1] - G[j] for j in range(len(G) - 1)])
+    dX = np.column_stack([X[j + 1] - X[j] for j in range(len(X) - 1)])
+    gamma, *_ = np.linalg.lstsq(dG, g, rcond=None)
+    return g - (dX + dG) @ gamma
+
+
 class _StepFailed(Exception):
     """A load step did not converge (or its predictor inverted an element)."""
 
@@ -732,15 +745,10 @@ class HyperelasticModel:
             if len(X) > self.depth + 1:
                 X.pop(0)
                 G.pop(0)
-            step = g
-            if len(G) >= 2:
-                dG = np.column_stack([G[j + 1] - G[j] for j in range(len(G) - 1)])
-                dX = np.column_stack([X[j + 1] - X[j] for j in range(len(X) - 1)])
-                gamma, *_ = np.linalg.lstsq(dG, g, rcond=None)
-                step = g - (dX + dG) @ gamma
-                if r @ step >= 0:  # the mixed step would raise the energy: the plain one
-                    step = g
-                    X, G = [x.copy()], [g]
+            step = anderson_step(X, G)
+            if len(G) >= 2 and r @ step >= 0:  # the mixed step would raise the energy: the plain one
+                step = g
+                X, G = [x.copy()], [g]
             x = x + step
         raise _StepFailed(d)
 
