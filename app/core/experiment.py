@@ -345,6 +345,13 @@ def load_surface(path: Path, field_name: str = "file") -> tuple[np.ndarray, np.n
     return np.asarray(mesh.points, float), faces
 
 
+# how far the probe's lateral axis may turn from the specimen's x or y axis: the
+# model meshes the face as a rectangle along them (Probe.face_rect_mm), and at 1
+# degree the corners of a 40 mm face stand 0.35 mm from it (the automatic mesh's
+# edges on the face are 1.6-2 mm long)
+MAX_OFF_AXIS_DEG = 1.0
+
+
 def _read_probe(p: _Fields, specimen: Specimen) -> Probe:
     face = p.vector("face_mm", 2, positive=True)
     center = p.vector("center_mm", 2)
@@ -353,6 +360,12 @@ def _read_probe(p: _Fields, specimen: Specimen) -> Probe:
     if np.linalg.norm(lat_a) == 0 or abs(lat_a[2]) > 1e-9:
         p.fail("lateral_axis", f"must be a horizontal, non-zero direction, got {list(lat)}")
     lat = tuple(float(x) for x in lat_a / np.linalg.norm(lat_a))
+    off_axis = math.degrees(math.asin(min(1.0, min(abs(lat[0]), abs(lat[1])))))
+    if off_axis > MAX_OFF_AXIS_DEG:
+        p.fail("lateral_axis", f"is {off_axis:.1f} degrees from the specimen's x and y axes ({list(lat_a)}): the "
+                               f"model meshes the probe face along x or y, within {MAX_OFF_AXIS_DEG:g} degree, so a "
+                               "face turned further would be modelled in the wrong place. Turn the probe (or the "
+                               "specimen's axes) so that the image's columns run along x or y")
     p.unknown({"face_mm", "center_mm", "lateral_axis"})
     probe = Probe(face_mm=face, center_mm=center, lateral_axis=lat)
     off = probe_off_top(probe, specimen.size_mm)

@@ -168,6 +168,8 @@ BROKEN = [
     ("radius as string", _set(["specimen", "regions", 1, "radius_mm"], "4 mm"), "experiment.toml",
      "specimen.regions[1].radius_mm"),
     ("probe off the top", _set(["probe", "center_mm"], [2.0, 15.0]), "experiment.toml", "probe.center_mm"),
+    ("probe face turned off the axes", _set(["probe", "lateral_axis"], [1.0, 0.1, 0.0]), "experiment.toml",
+     "probe.lateral_axis"),
     ("missing image", _set(["frames", 1, "image"], "images/nothere.png"), "nothere.png", "frames[1].image"),
     ("corrupt image", _corrupt_image, "f1.png", "frames[1].image"),
     ("frames of different sizes", _resize_image, "f1.png", "frames[1].image"),
@@ -297,3 +299,16 @@ def test_the_experiment_toml_names_its_folder_and_a_missing_folder_says_so(tmp_p
     (tmp_path / "notes.txt").write_text("x")
     with pytest.raises(ExperimentError, match="is not a folder: an experiment is a folder"):
         read_experiment(tmp_path / "notes.txt")
+
+
+def test_the_probe_may_lie_along_x_or_y_either_way_within_a_degree(tmp_path):
+    """A probe turned a quarter or half turn, or by less than a degree, loads (its
+    face along y for a quarter turn); one turned further is refused above."""
+    for i, (axis, rect_along_y) in enumerate((([0.0, -1.0, 0.0], True), ([-1.0, 0.0, 0.0], False),
+                                              ([1.0, 0.015, 0.0], False))):
+        f = make_valid(tmp_path / f"x{i}")
+        edit_toml(f, _set(["probe", "lateral_axis"], axis))
+        probe = read_experiment(f).probe
+        x0, x1, y0, y1 = probe.face_rect_mm()
+        w, e = probe.face_mm
+        assert (y1 - y0, x1 - x0) == pytest.approx((w, e) if rect_along_y else (e, w))
