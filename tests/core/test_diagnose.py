@@ -1461,6 +1461,9 @@ def test_hidden_inclusion_is_located_and_adding_it_lowers_the_error(tmp_path_fac
     placed = ident.get("inclusion", c.inclusion)
     (hidden_name,) = hidden
     assert ident["place_trials"] > 1 and ident["effects"] == ["inclusion"], ident
+    # the outline's size it rests on, and the advice when it is coarser than advised
+    assert ident["outline_mm"] == (ID_MESH.outline_edge_mm or ID_MESH.probe_edge_mm), ident
+    assert ("rests on the mesh along the probe face's outline" in d.identified_text()) == (ident["outline_mm"] > 1.0)
     assert np.linalg.norm(np.array(placed["center_mm"]) - c_true) < 3.0, placed
     # measured (2026-11-30, the full search in both cases): placed 0.8 and 1.1 mm from the hidden sphere
     # (located: 1.4 and 1.2 mm), E_I -6.5% and -14.9% of the truth's on these coarse test meshes; on the paper-size blind seeds -4.7% and -3.7%
@@ -1886,3 +1889,32 @@ def test_the_rival_place_fitted_too_is_kept_as_what_it_did():
         "places apart")
     # neither explains anything: no ambiguity to report
     assert "rival_fitted" in with_fitted_rival(placed, rival, -5.0, -8.0)
+
+
+def test_an_inclusion_verdict_on_a_coarse_outline_says_its_modulus_rests_on_that_mesh():
+    """At four hidden spheres' true places the automatic meshes (the probe face's
+    outline at 2.0 mm) gave the sphere's modulus 15-89% low, and 1.0 mm along the
+    outline within 25% (docs/model-check.md): an inclusion verdict identified on an
+    outline coarser than OUTLINE_ADVISED_MM says so, with the size used; one on a
+    fine outline, or an old session's without the size, does not."""
+    from app.core.diagnose import OUTLINE_ADVISED_MM, Candidate, Diagnosis, NoiseModel
+
+    place = {"name": "I", "center_mm": [64.7, 45.0, 81.6], "radius_mm": 6.4}
+    base = Candidate("", (), {"E_B_kPa": 17.9, "E_A_kPa": 63.8}, {}, {"chi2": 3000.0})
+
+    def verdict(outline):
+        inc = Candidate("inclusion", ("inclusion",), {"E_B_kPa": 18.0, "E_A_kPa": 63.7, "E_I_kPa": 6.7}, {},
+                        {"chi2": 1800.0}, 4, 900.0, "", place, material=True)
+        inc.identified = {"parameters": {"E_B_kPa": 18.0, "E_A_kPa": 63.8, "E_I_kPa": 11.0}, "cost": {"total": -1.05},
+                          "seconds": 80.0, "place_trials": 16}
+        if outline is not None:
+            inc.identified["outline_mm"] = outline
+        return Diagnosis("x", base, [inc], "inclusion", NoiseModel(0.02, 1481, 0.2, 200), 1.0)
+
+    text = verdict(2.0).identified_text()
+    assert ("E_I rests on the mesh along the probe face's outline (2 mm here) more than on the frames: mesh the "
+            f"outline at {OUTLINE_ADVISED_MM:g} mm, or check the mesh, to see how far it moves") in text, text
+    for fine in (OUTLINE_ADVISED_MM, 0.8, None):
+        assert "rests on the mesh" not in verdict(fine).identified_text()
+    d = verdict(2.0)
+    assert Diagnosis.from_state(d.state()).identified_text() == text  # a session file keeps it
