@@ -34,6 +34,7 @@ class SyntheticSpec:
     nu: float = 0.49
     face_mm: tuple = (40.0, 10.0)
     probe_center_mm: tuple | None = None  # default: centre of the top face
+    lateral_axis: tuple = (1.0, 0.0, 0.0)  # the image columns' direction: along x or y, either way
     depth_mm: float = 14.8
     speed_mm_s: float = 1.0
     hold_s: float = 0.0
@@ -92,7 +93,7 @@ def _template(spec: SyntheticSpec) -> Experiment:
     imaging = Imaging(pixel_spacing_mm=tuple(spec.pixel_spacing_mm), probe_face_px=((cols - 1) / 2.0, 0.0),
                       elevation_thickness_mm=1.0, roi_px=roi)
     return Experiment(name=spec.name or _default_name(spec), specimen=Specimen(tuple(spec.size_mm), tuple(spec.regions)),
-                      probe=Probe(tuple(spec.face_mm), tuple(center), (1.0, 0.0, 0.0)), imaging=imaging,
+                      probe=Probe(tuple(spec.face_mm), tuple(center), tuple(spec.lateral_axis)), imaging=imaging,
                       frames=(), force_log=ForceLog(np.zeros(2), np.zeros(2), np.zeros(2)),
                       notes=spec.notes or f"simulated by ElastoID (seed {spec.seed})")
 
@@ -126,10 +127,16 @@ def check_spec(spec: SyntheticSpec) -> None:
     if poisson_problem(spec.nu):
         fail("nu", poisson_problem(spec.nu))
     positive("face_mm", spec.face_mm, 2)
+    axes = [(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0)]
+    if tuple(float(v) for v in spec.lateral_axis) not in axes:
+        fail("lateral_axis", f"must be x, -x, y or -y, got {list(spec.lateral_axis)}")
+    if spec.probe_center_mm is not None and (len(spec.probe_center_mm) != 2
+                                             or not all(np.isfinite(v) for v in spec.probe_center_mm)):
+        fail("probe_center_mm", f"expected 2 numbers, got {list(spec.probe_center_mm)}")
     center = spec.probe_center_mm or (size[0] / 2, size[1] / 2)
-    off = probe_off_top(Probe(tuple(spec.face_mm), tuple(center), (1.0, 0.0, 0.0)), size)
+    off = probe_off_top(Probe(tuple(spec.face_mm), tuple(center), tuple(spec.lateral_axis)), size)
     if off:
-        fail("face_mm", off)
+        fail("face_mm" if spec.probe_center_mm is None else "probe_center_mm", off)
     sz = size[2]
     positive("depth_mm", spec.depth_mm)
     if spec.depth_mm >= sz:
