@@ -82,9 +82,10 @@ SPEC_OPTIONS = {"size_mm": "--size-mm", "nu": "--nu", "face_mm": "--face-mm", "d
                 "hold_s": "--hold-s", "force_noise_N": "--noise-N", "frames_at_mm": "--frames-at",
                 "image_shape": "--rows/--cols", "regions": "--inclusion", "hidden_regions": "--hidden",
                 "moduli_kPa": "--moduli", "g1": "--g1", "tau1_s": "--tau1-s", "truth_mesh_scale": "--truth-mesh-scale",
-                "probe_center_mm": "--probe-center-mm", "lateral_axis": "--lateral-axis"}
-# --lateral-axis: the image columns' world direction
-LATERAL_AXES = {"x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0)}
+                "probe_center_mm": "--probe-center-mm", "lateral_axis": "--probe-turn-deg"}
+# --probe-turn-deg: the image columns' world direction, the probe turned about the vertical from x
+# (in degrees, not "-x": argparse takes a value starting with a dash for an option)
+PROBE_TURNS = {"0": (1.0, 0.0, 0.0), "90": (0.0, 1.0, 0.0), "180": (-1.0, 0.0, 0.0), "270": (0.0, -1.0, 0.0)}
 
 
 def _moduli(text: str) -> dict:
@@ -463,7 +464,7 @@ def cmd_simulate(args) -> int:
                          image_shape=(args.rows, args.cols),
                          truth_mesh_scale=args.truth_mesh_scale,
                          effects=effects, hidden_regions=tuple(hidden), g1=args.g1, tau1_s=args.tau1_s,
-                         nu=args.nu, lateral_axis=LATERAL_AXES[args.lateral_axis],
+                         nu=args.nu, lateral_axis=PROBE_TURNS[args.probe_turn_deg],
                          probe_center_mm=(tuple(_floats(args.probe_center_mm, 2, "--probe-center-mm"))
                                           if args.probe_center_mm else None))
     try:
@@ -539,8 +540,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--face-mm", default="40,10", help="probe face, lateral,elevation in mm (default 40,10)")
     sp.add_argument("--probe-center-mm", help="x,y of the probe face's centre on the top, mm (default: the top's "
                     "centre)")
-    sp.add_argument("--lateral-axis", choices=sorted(LATERAL_AXES), default="x",
-                    help="the image columns' direction (default x; y turns the probe a quarter turn)")
+    sp.add_argument("--probe-turn-deg", choices=list(PROBE_TURNS), default="0",
+                    help="the probe turned about the vertical, degrees from x to the image columns (default 0: "
+                         "along x; 90: along y)")
     sp.add_argument("--depth-mm", type=float, default=14.8, help="probe travel at the end of the loading, mm (default 14.8)")
     sp.add_argument("--frames-at", default="0,7.4,14.8", help="probe travel of each frame, mm")
     sp.add_argument("--hold-s", type=float, default=0.0, help="hold at the full travel, s (default 0; the probe moves at 1 mm/s)")

@@ -40,14 +40,14 @@ def test_simulate_then_identify_json_follows_the_contract(tmp_path, capsys):
 
 def test_simulate_an_off_centre_probe_turned_a_quarter_turn_and_identify_it(tmp_path, capsys):
     """The probe need not sit at the top's centre nor along x: the simulator writes
-    such an experiment (--probe-center-mm, --lateral-axis) and the identification
+    such an experiment (--probe-center-mm, --probe-turn-deg) and the identification
     finds the moduli from it (measured: E_B -2.3%, E_A +5.0% of 15 and 45 kPa)."""
     from app.core.experiment import read_experiment
 
     out = tmp_path / "exp"
     assert main(["simulate", str(out), "--size-mm", "40,40,30", "--inclusion", "sphere:20,20,18,7",
                  "--moduli", "B=15,A=45", "--face-mm", "24,8", "--depth-mm", "5", "--frames-at", "0,2.5,5",
-                 "--rows", "128", "--cols", "120", "--seed", "1", "--probe-center-mm", "17,22", "--lateral-axis", "y",
+                 "--rows", "128", "--cols", "120", "--seed", "1", "--probe-center-mm", "17,22", "--probe-turn-deg", "90",
                  "--quiet"]) == 0
     probe = read_experiment(out).probe
     assert probe.center_mm == (17.0, 22.0) and probe.lateral_axis == (0.0, 1.0, 0.0)
@@ -289,6 +289,7 @@ def test_identify_locates_the_inclusion_and_refines_it_when_asked(tmp_path_facto
     (["--face-mm", "200,10"], "--face-mm", "does not lie on the"),
     (["--probe-center-mm", "3,45"], "--probe-center-mm", "does not lie on the"),
     (["--probe-center-mm", "3"], "--probe-center-mm", "expected 2 numbers"),
+    (["--probe-center-mm", "45,8", "--probe-turn-deg", "270"], "--probe-center-mm", "does not lie on the"),
     (["--hold-s", "-1"], "--hold-s", "zero or positive"),
     (["--effects", "viscoelastic", "--g1", "1.5"], "--g1", "[0, 1)"),
     (["--moduli", "B=-3,A=5"], "--moduli", "region 'B' must be positive"),
