@@ -1363,7 +1363,8 @@ REFINE_MIN_FALL = 0.03
 
 
 def compass_search(value, x: float, z: float, r: float, step: float, more) -> tuple[float, float, float]:
-    """A compass search of ``value(x, z, r)`` (lower is better) from (x, z, r): the
+    """A compass search of ``value(x, z, r)`` (lower is better) from (x, z, r), x the
+    centre's coordinate along the image's columns (see :func:`_sphere_search`): the
     centre moved by ``step`` in x, then z, then the radius scaled by
     REFINE_RADIUS_FACTOR; the first neighbour that is better is taken, and when
     none is, the step halves (the factor to its square root), down to
@@ -1492,19 +1493,23 @@ def _sphere_search(problem: EffectProblem, params: dict, value, more, cancel, wh
     blind paper-size phantom the search otherwise pushed a sphere 10 mm deep up
     into the probe's face, to fit the contact's misfit. ``more()`` says whether
     another trial may be made."""
+    from app.core.effects.inclusion import plane_coordinates, plane_point
+
     build = _trial_builder(problem, params, cancel, what)
     inc = problem.inclusion
     size = np.asarray(problem.exp.specimen.size_mm, float)
-    y = float(inc["center_mm"][1])
+    lateral = np.asarray(problem.exp.probe.lateral_axis, float)
+    base, s0, z0 = plane_coordinates(inc["center_mm"], lateral)  # moved in the image plane (s along its columns)
     tried: dict = {}
 
-    def trial(x: float, z: float, r: float) -> float:
-        key = (round(x, 3), round(z, 3), round(r, 3))
+    def trial(s: float, z: float, r: float) -> float:
+        key = (round(s, 3), round(z, 3), round(r, 3))
         if key in tried:
             return tried[key]
         if cancel is not None and cancel.is_set():
             raise Cancelled(f"{what} cancelled")
-        sphere = {"name": inc["name"], "center_mm": [key[0], y, key[1]], "radius_mm": key[2]}
+        center = [float(v) for v in plane_point(base, lateral, key[0], key[1])]
+        sphere = {"name": inc["name"], "center_mm": center, "radius_mm": key[2]}
         tp = build(sphere)
         if tp is None:
             tried[key] = math.inf
@@ -1515,10 +1520,9 @@ def _sphere_search(problem: EffectProblem, params: dict, value, more, cancel, wh
             tp.release()
         return tried[key]
 
-    x, _, z = (float(v) for v in inc["center_mm"])
     made = problem.rm.factorize(problem.theta(params))  # for every trial to borrow
     try:
-        compass_search(trial, x, z, float(inc["radius_mm"]), REFINE_STEP * float(size.min()), more)
+        compass_search(trial, s0, z0, float(inc["radius_mm"]), REFINE_STEP * float(size.min()), more)
     finally:
         if made:
             problem.rm.release()

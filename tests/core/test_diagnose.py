@@ -1737,7 +1737,7 @@ def test_the_scan_tries_spheres_partly_out_of_view_and_no_wider_than_the_field_a
     from app.core.effects.inclusion import MAX_WIDTH, candidate_spheres, capping_width
 
     lo, hi, size, step = np.array([28.7, 45.0, 63.6]), np.array([60.7, 45.0, 92.4]), (90.0, 90.0, 96.0), 3.6
-    sph = candidate_spheres(lo, hi, 45.0, size, [5.4, 9.0, 13.5], step, 32.0)
+    sph = candidate_spheres(lo, hi, (45.0, 45.0, 0.0), (1.0, 0.0, 0.0), size, [5.4, 9.0, 13.5], step, 32.0)
     radii = sorted({r for _, r in sph})
     assert radii == [5.4, pytest.approx(0.5 * MAX_WIDTH * 32.0)] and max(radii) == pytest.approx(6.4)
     C = np.array([c for c, _ in sph])
@@ -1750,16 +1750,46 @@ def test_the_scan_tries_spheres_partly_out_of_view_and_no_wider_than_the_field_a
             c = np.clip([x, 45.0, z], 5.9, np.array(size) - 5.9)
             assert np.any((np.abs(C - c).max(axis=1) < 1e-9) & (R == 5.4)), c
     # a field the cap does not bind (the test phantoms': 29 mm wide, radii up to 4.5 mm)
-    sph = candidate_spheres(np.array([5.5, 20, 4.2]), np.array([34.3, 20, 26.6]), 20.0, (40, 40, 30), [1.8, 3, 4.5],
-                            1.2, 28.8)
+    sph = candidate_spheres(np.array([5.5, 20, 4.2]), np.array([34.3, 20, 26.6]), (20.0, 20.0, 0.0), (1.0, 0.0, 0.0),
+                            (40, 40, 30), [1.8, 3, 4.5], 1.2, 28.8)
     assert sorted({r for _, r in sph}) == [1.8, 3.0, 4.5]
     # a specimen described as one region: no cap (a 24 mm wide image of one, tracked over
     # 12.8 mm, capped the radius at 2.56 mm, under a hidden sphere of 4 mm)
     lo, hi = np.array([13.6, 20.0, 3.0]), np.array([26.4, 20.0, 25.0])
     assert capping_width(lo, hi, [1.0, 0.0, 0.0], 2) == pytest.approx(12.8)
     assert capping_width(lo, hi, [1.0, 0.0, 0.0], 1) == math.inf
-    sph = candidate_spheres(lo, hi, 20.0, (40, 40, 30), [1.8, 3, 4.5], 1.2, capping_width(lo, hi, [1, 0, 0], 1))
+    sph = candidate_spheres(lo, hi, (20.0, 20.0, 0.0), (1.0, 0.0, 0.0), (40, 40, 30), [1.8, 3, 4.5], 1.2,
+                            capping_width(lo, hi, [1, 0, 0], 1))
     assert sorted({r for _, r in sph}) == [1.8, 3.0, 4.5]
+
+
+def test_the_scan_and_the_placement_move_spheres_in_the_image_plane_of_a_turned_probe():
+    """With the probe turned along y (lateral axis (0, -1, 0)), the image plane is
+    x = the probe's x: the scan's centres keep that x and spread along y over the
+    tracked field and beyond (they were all put on the probe's axis, y = its
+    centre, before: a blind paper-size phantom with the probe along y located a
+    sphere 8 mm off the axis at the axis); the same grid as a probe along x, turned.
+    The placement's in-plane coordinates are exact for a probe along x."""
+    from app.core.effects.inclusion import candidate_spheres, plane_coordinates, plane_point
+
+    size, step, radii = (90.0, 90.0, 96.0), 3.6, [5.4]
+    lo_x, hi_x = np.array([28.7, 50.0, 63.6]), np.array([60.7, 50.0, 92.4])  # probe at (44.7, 50) along x
+    along_x = candidate_spheres(lo_x, hi_x, (44.7, 50.0, 0.0), (1.0, 0.0, 0.0), size, radii, step, 32.0)
+    lo_y, hi_y = np.array([38.0, 29.3, 63.6]), np.array([38.0, 61.3, 92.4])  # probe at (38, 45.3) along -y
+    along_y = candidate_spheres(lo_y, hi_y, (38.0, 45.3, 0.0), (0.0, -1.0, 0.0), size, radii, step, 32.0)
+    C = np.array([c for c, _ in along_y])
+    assert np.all(C[:, 0] == 38.0), C[:, 0]
+    assert C[:, 1].min() < lo_y[1] - 3.0 and C[:, 1].max() > hi_y[1] + 3.0  # along the field, and beyond
+    assert len(along_y) == len(along_x)
+    # a sphere 8 mm to the side of the probe's centre, 12 mm deep, has a scanned centre within a step
+    assert np.min(np.linalg.norm(C - np.array([38.0, 53.3, 84.0]), axis=1)) < step
+    for center, lateral in (([31.25, 45.0, 82.5], (1.0, 0.0, 0.0)), ([38.0, 58.0, 84.0], (0.0, -1.0, 0.0))):
+        base, s, z = plane_coordinates(center, lateral)
+        assert base[2] == 0.0 and z == center[2]
+        assert list(plane_point(base, lateral, s, z)) == pytest.approx(center, abs=1e-12)
+    base, s, z = plane_coordinates([31.25, 45.0, 82.5], (1.0, 0.0, 0.0))
+    assert (s, z, list(base)) == (31.25, 82.5, [0.0, 45.0, 0.0])
+    assert list(plane_point(base, (1.0, 0.0, 0.0), s + 1.5, z)) == [32.75, 45.0, 82.5]  # exactly
 
 
 def test_a_located_inclusion_is_meshed_with_the_looser_envelope(monkeypatch):

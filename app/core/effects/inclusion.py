@@ -178,21 +178,46 @@ def inside_specimen(center_mm, radius_mm: float, size_mm) -> bool:
     return bool(np.all(c - radius_mm >= WALL_GAP_MM - 1e-9) and np.all(c + radius_mm <= size - WALL_GAP_MM + 1e-9))
 
 
-def candidate_spheres(lo, hi, y: float, size, radii_mm, step: float, width: float) -> list:
-    """The scan's spheres, (centre, radius): centres on a grid of ``step`` over the
-    tracked field's box ``lo``..``hi`` (x and z; y the image plane's) and whole
-    steps beyond it, up to a radius (a sphere partly in view changes the field in
-    view; the grid in the field is the same), kept inside the specimen ``size``;
-    radii no larger than MAX_WIDTH / 2 of the field's ``width`` (a wider sphere
-    straddles the described regions and bends towards the mesh error along their
-    boundaries). Spheres that the specimen's walls clip to the same one appear once."""
+def plane_coordinates(center, lateral) -> tuple[np.ndarray, float, float]:
+    """``center`` as ``base + s * lateral + z * (0, 0, 1)``: (base, s, z), with
+    ``base`` the foot (z = 0) of the vertical plane along ``lateral`` through it.
+    With the image plane's lateral axis, s and z are the in-plane coordinates
+    (with lateral x, s is x and base (0, y, 0))."""
+    lat = np.asarray(lateral, float)
+    c = np.asarray(center, float)
+    s = float(c @ lat)
+    base = c - s * lat
+    z = float(base[2])
+    base[2] = 0.0
+    return base, s, z
+
+
+def plane_point(base, lateral, s: float, z: float) -> np.ndarray:
+    """The point ``base + s * lateral + z * (0, 0, 1)`` (see :func:`plane_coordinates`)."""
+    return np.asarray(base, float) + s * np.asarray(lateral, float) + np.array([0.0, 0.0, z])
+
+
+def candidate_spheres(lo, hi, through, lateral, size, radii_mm, step: float, width: float) -> list:
+    """The scan's spheres, (centre, radius): centres in the image plane (the
+    vertical plane along ``lateral`` through the point ``through``, e.g. the probe's
+    centre) on a grid of ``step`` over the tracked field's box ``lo``..``hi``
+    (along the lateral axis and z) and whole steps beyond it, up to a radius (a
+    sphere partly in view changes the field in view; the grid in the field is the
+    same), kept inside the specimen ``size``; radii no larger than MAX_WIDTH / 2 of
+    the field's ``width`` (a wider sphere straddles the described regions and bends
+    towards the mesh error along their boundaries). Spheres that the specimen's
+    walls clip to the same one appear once. (The plane was taken as x-z until
+    2026-12-01: with the probe turned along y every sphere sat on the probe's axis.)"""
     size = np.asarray(size, float)
+    lat = np.asarray(lateral, float)
+    base, _, _ = plane_coordinates(through, lat)
+    s_lo, s_hi = sorted((float(np.asarray(lo, float) @ lat), float(np.asarray(hi, float) @ lat)))
     spheres = {}
     for rad in sorted({min(float(r), 0.5 * MAX_WIDTH * width) for r in radii_mm}):
         out = np.ceil(rad / step - 1e-9) * step
-        for x in np.arange(lo[0] - out, hi[0] + out + 1e-9, step):
+        for s in np.arange(s_lo - out, s_hi + out + 1e-9, step):
             for z in np.arange(lo[2] - out, hi[2] + out + 1e-9, step):
-                c = np.clip([x, y, z], rad + WALL_GAP_MM, size - rad - WALL_GAP_MM)
+                c = np.clip(plane_point(base, lat, s, z), rad + WALL_GAP_MM, size - rad - WALL_GAP_MM)
                 spheres.setdefault((tuple(np.round(c, 6)), rad), (c, rad))
     return list(spheres.values())
 
@@ -453,8 +478,9 @@ def scan(problem, params: dict, tracked, model_px_per_pair, noise_px, radii_mm=N
         if radii_mm is None:
             radii_mm = sorted({max(1.5, 0.06 * size.min()), 0.1 * size.min(), 0.15 * size.min()})
         step = max(tracked.block_px * min(problem._sc, problem._sr), 0.04 * size.min())
-        y = float(exp.probe.center_mm[1])
-        spheres = candidate_spheres(lo, hi, y, size, radii_mm, step, capping_width(lo, hi, problem._lat, len(E)))
+        through = (*exp.probe.center_mm, 0.0)
+        spheres = candidate_spheres(lo, hi, through, problem._lat, size, radii_mm, step,
+                                    capping_width(lo, hi, problem._lat, len(E)))
         scored = []
         for k0 in range(0, len(spheres), 32):
             if cancel is not None and cancel.is_set():
