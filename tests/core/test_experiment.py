@@ -312,3 +312,8 @@ def test_the_probe_may_lie_along_x_or_y_either_way_within_a_degree(tmp_path):
         x0, x1, y0, y1 = probe.face_rect_mm()
         w, e = probe.face_mm
         assert (y1 - y0, x1 - x0) == pytest.approx((w, e) if rect_along_y else (e, w))
+    f = make_valid(tmp_path / "diagonal")
+    edit_toml(f, _set(["probe", "lateral_axis"], [0.7071, 0.7071, 0.0]))
+    with pytest.raises(ExperimentError, match=r"is 45\.0 degrees from the specimen's x and y axes \(\[0\.7071, 0\.7071, "
+                                              r"0\.0\]\)"):
+        read_experiment(f)
