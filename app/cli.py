@@ -83,9 +83,6 @@ SPEC_OPTIONS = {"size_mm": "--size-mm", "nu": "--nu", "face_mm": "--face-mm", "d
                 "image_shape": "--rows/--cols", "regions": "--inclusion", "hidden_regions": "--hidden",
                 "moduli_kPa": "--moduli", "g1": "--g1", "tau1_s": "--tau1-s", "truth_mesh_scale": "--truth-mesh-scale",
                 "probe_center_mm": "--probe-center-mm", "lateral_axis": "--probe-turn-deg"}
-# --probe-turn-deg: the image columns' world direction, the probe turned about the vertical from x
-# (in degrees, not "-x": argparse takes a value starting with a dash for an option)
-PROBE_TURNS = {"0": (1.0, 0.0, 0.0), "90": (0.0, 1.0, 0.0), "180": (-1.0, 0.0, 0.0), "270": (0.0, -1.0, 0.0)}
 
 
 def _moduli(text: str) -> dict:
@@ -420,7 +417,7 @@ def _diagnosis_mesh_check(args, exp, result, settings, inclusion):
 def cmd_simulate(args) -> int:
     from app.core.geometry import Region
     from app.core.mesh import MeshSettings
-    from app.core.simulate import DEMO_SPEC, SpecError, SyntheticSpec, simulate_experiment
+    from app.core.simulate import DEMO_SPEC, PROBE_TURNS, SpecError, SyntheticSpec, simulate_experiment
 
     say = (lambda s: print(s, file=sys.stderr)) if not args.quiet else None
     if args.demo:
@@ -464,7 +461,7 @@ def cmd_simulate(args) -> int:
                          image_shape=(args.rows, args.cols),
                          truth_mesh_scale=args.truth_mesh_scale,
                          effects=effects, hidden_regions=tuple(hidden), g1=args.g1, tau1_s=args.tau1_s,
-                         nu=args.nu, lateral_axis=PROBE_TURNS[args.probe_turn_deg],
+                         nu=args.nu, lateral_axis=PROBE_TURNS[args.probe_turn_deg],  # degrees: "-x" reads as an option
                          probe_center_mm=(tuple(_floats(args.probe_center_mm, 2, "--probe-center-mm"))
                                           if args.probe_center_mm else None))
     try:
@@ -540,7 +537,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--face-mm", default="40,10", help="probe face, lateral,elevation in mm (default 40,10)")
     sp.add_argument("--probe-center-mm", help="x,y of the probe face's centre on the top, mm (default: the top's "
                     "centre)")
-    sp.add_argument("--probe-turn-deg", choices=list(PROBE_TURNS), default="0",
+    sp.add_argument("--probe-turn-deg", choices=("0", "90", "180", "270"), default="0",  # simulate.PROBE_TURNS
                     help="the probe turned about the vertical, degrees from x to the image columns (default 0: "
                          "along x; 90: along y)")
     sp.add_argument("--depth-mm", type=float, default=14.8, help="probe travel at the end of the loading, mm (default 14.8)")

@@ -1904,9 +1904,10 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
         try:
             c.identified = _identified_verdict(c.problem, verdict, c.parameters, say, cancel)
             if verdict == "inclusion":  # its modulus rests on the outline's mesh (Diagnosis.identified_text)
-                used = mesh_settings or auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(),
-                                                      exp.specimen.regions)
-                c.identified["outline_mm"] = float(used.outline_edge_mm or used.probe_edge_mm)
+                from app.core.mesh_check import identification_settings
+
+                used = identification_settings(exp, mesh_settings)
+                c.identified["outline_mm"] = float(used.outline_edge_mm or used.probe_edge_mm)  # None: the face's
         except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate's fit stands
             say(f"{verdict}: not identified ({exc})")
         c.problem.release(keep=problem)

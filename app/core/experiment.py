@@ -362,8 +362,9 @@ def _read_probe(p: _Fields, specimen: Specimen) -> Probe:
     lat = tuple(float(x) for x in lat_a / np.linalg.norm(lat_a))
     off_axis = math.degrees(math.asin(min(1.0, min(abs(lat[0]), abs(lat[1])))))
     if off_axis > MAX_OFF_AXIS_DEG:
-        p.fail("lateral_axis", f"is {off_axis:.1f} degrees from the specimen's x and y axes ({[float(v) for v in lat_a]}): the "
-                               f"model meshes the probe face along x or y, within {MAX_OFF_AXIS_DEG:g} degree, so a "
+        given = [float(v) for v in lat_a]
+        p.fail("lateral_axis", f"is {off_axis:.1f} degrees from the specimen's x and y axes ({given}): the model "
+                               f"meshes the probe face along x or y, within {MAX_OFF_AXIS_DEG:g} degree, so a "
                                "face turned further would be modelled in the wrong place. Turn the probe (or the "
                                "specimen's axes) so that the image's columns run along x or y")
     p.unknown({"face_mm", "center_mm", "lateral_axis"})

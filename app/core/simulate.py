@@ -34,7 +34,7 @@ class SyntheticSpec:
     nu: float = 0.49
     face_mm: tuple = (40.0, 10.0)
     probe_center_mm: tuple | None = None  # default: centre of the top face
-    lateral_axis: tuple = (1.0, 0.0, 0.0)  # the image columns' direction: along x or y, either way
+    lateral_axis: tuple = (1.0, 0.0, 0.0)  # the image columns' direction: one of PROBE_TURNS' axes
     depth_mm: float = 14.8
     speed_mm_s: float = 1.0
     hold_s: float = 0.0
@@ -93,9 +93,15 @@ def _template(spec: SyntheticSpec) -> Experiment:
     imaging = Imaging(pixel_spacing_mm=tuple(spec.pixel_spacing_mm), probe_face_px=((cols - 1) / 2.0, 0.0),
                       elevation_thickness_mm=1.0, roi_px=roi)
     return Experiment(name=spec.name or _default_name(spec), specimen=Specimen(tuple(spec.size_mm), tuple(spec.regions)),
-                      probe=Probe(tuple(spec.face_mm), tuple(center), tuple(spec.lateral_axis)), imaging=imaging,
+                      probe=Probe(tuple(spec.face_mm), tuple(center), tuple(spec.lateral_axis)),
+                      imaging=imaging,
                       frames=(), force_log=ForceLog(np.zeros(2), np.zeros(2), np.zeros(2)),
                       notes=spec.notes or f"simulated by ElastoID (seed {spec.seed})")
+
+
+# the probe turned about the vertical, degrees from x to the image columns -> their direction
+# (the simulator writes quarter turns: the model meshes the face along x or y)
+PROBE_TURNS = {"0": (1.0, 0.0, 0.0), "90": (0.0, 1.0, 0.0), "180": (-1.0, 0.0, 0.0), "270": (0.0, -1.0, 0.0)}
 
 
 class SpecError(ElastoidError):
@@ -127,8 +133,7 @@ def check_spec(spec: SyntheticSpec) -> None:
     if poisson_problem(spec.nu):
         fail("nu", poisson_problem(spec.nu))
     positive("face_mm", spec.face_mm, 2)
-    axes = [(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0)]
-    if tuple(float(v) for v in spec.lateral_axis) not in axes:
+    if tuple(float(v) for v in spec.lateral_axis) not in PROBE_TURNS.values():
         fail("lateral_axis", f"must be x, -x, y or -y, got {list(spec.lateral_axis)}")
     if spec.probe_center_mm is not None and (len(spec.probe_center_mm) != 2
                                              or not all(np.isfinite(v) for v in spec.probe_center_mm)):

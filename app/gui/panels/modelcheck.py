@@ -560,15 +560,16 @@ class ModelCheckPanel(Panel):
     def chosen_effects(self) -> tuple[str, ...]:
         return tuple(e for e, cb in self.identify_boxes.items() if cb.isChecked())
 
-    def selected_candidate(self) -> dict | None:
+    def selected_candidate(self, rows: list | None = None) -> dict | None:
+        """The selected row of the diagnosis (``rows``: its :func:`diagnosis_rows`, when made already)."""
         s = self.model.snapshot
         if s is None or s.diagnosis is None:
             return None
-        rows = self.diagnosis_table.selectionModel().selectedRows()
-        if not rows:
+        sel = self.diagnosis_table.selectionModel().selectedRows()
+        if not sel:
             return None
-        r = rows[0].row()
-        dr = diagnosis_rows(s.diagnosis)
+        r = sel[0].row()
+        dr = diagnosis_rows(s.diagnosis) if rows is None else rows
         return dr[r] if r < len(dr) else None
 
     def selected_version(self) -> int | None:
@@ -991,7 +992,7 @@ class ModelCheckPanel(Panel):
         if not rows:
             self.evidence_label.setText("")
             return
-        sel = self.selected_candidate()
+        sel = self.selected_candidate(rows)
         r = sel or next((r for r in rows if r["verdict"]), rows[0])
         text = r["evidence"] or "no evidence recorded"
         self.evidence_label.setText(f"<b>{html.escape(r['effect'])}</b> ({html.escape(r['score_text'])}): "
