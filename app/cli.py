@@ -326,7 +326,8 @@ def _mesh_settings(args, exp):
         return None
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
     return MeshSettings(edge_mm=args.mesh_edge_mm or auto.edge_mm,
-                        probe_edge_mm=args.probe_edge_mm or auto.probe_edge_mm, outline_edge_mm=args.outline_edge_mm)
+                        probe_edge_mm=args.probe_edge_mm or auto.probe_edge_mm,
+                        outline_edge_mm=args.outline_edge_mm or auto.outline_edge_mm)
 
 
 def cmd_diagnose(args) -> int:

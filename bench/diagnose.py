@@ -1,5 +1,5 @@
 """Model check at paper size: one hyperelastic forward solve and a full diagnosis
-of the demo experiment (resources/demo: P2, 52,929 dofs).
+of the demo experiment (resources/demo: P2, 64,932 dofs on the mesh shipped since 2026-12-01).
 
     /work/venv/bin/python bench/diagnose.py [--repeats 3] [--skip-diagnose] [--skip-hyperelastic]
                                             [--candidates a,b,...]

@@ -404,7 +404,8 @@ def test_identify_and_diagnose_say_when_the_default_frames_leave_some_out(capsys
 @pytest.mark.parametrize("command", ["identify", "diagnose"])
 def test_the_element_size_options_set_the_mesh_and_keep_the_automatic_rest(command):
     """--outline-edge-mm (the size along the probe face's outline) alone keeps the
-    automatic sizes elsewhere; with no size option the sizes stay automatic."""
+    automatic sizes elsewhere, and another size option keeps the automatic
+    outline (1.0 mm); with no size option the sizes stay automatic."""
     from app import cli
     from app.core.experiment import read_experiment
     from app.core.mesh import auto_settings
@@ -413,10 +414,10 @@ def test_the_element_size_options_set_the_mesh_and_keep_the_automatic_rest(comma
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
     parse = cli.build_parser().parse_args
     assert cli._mesh_settings(parse([command, "resources/demo"]), exp) is None
-    s = cli._mesh_settings(parse([command, "resources/demo", "--outline-edge-mm", "1.0"]), exp)
-    assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, auto.probe_edge_mm, 1.0)
+    s = cli._mesh_settings(parse([command, "resources/demo", "--outline-edge-mm", "0.8"]), exp)
+    assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, auto.probe_edge_mm, 0.8)
     s = cli._mesh_settings(parse([command, "resources/demo", "--probe-edge-mm", "1.5"]), exp)
-    assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, 1.5, None)
+    assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, 1.5, 1.0) == (10.0, 1.5, auto.outline_edge_mm)
 
 
 def test_the_mesh_check_identifies_the_result_again_on_a_finer_mesh(tmp_path, capsys):

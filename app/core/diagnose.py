@@ -61,7 +61,7 @@ from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import relabel
 from app.core.identify import force_noise_N, parameter_text
 from app.core.geometry import paint_labels
-from app.core.mesh import MeshSettings, auto_settings, specimen_mesh
+from app.core.mesh import FINE_OUTLINE_MM, MeshSettings, auto_settings, specimen_mesh
 
 HUBER_C = 2.0
 
@@ -1203,6 +1203,13 @@ def noise_model(problem: EffectProblem, tracked: TrackedField) -> NoiseModel:
 # fTetWild's envelope (relative to the box diagonal) for a mesh with a located inclusion:
 # its own default, twice the specimen meshes' 5e-4
 LOCATED_EPSILON = 1e-3
+# a located inclusion's own modulus rests on the mesh along the probe face's outline:
+# at four hidden spheres' true places the automatic meshes (the outline at the face's
+# 2.0 mm) gave it 15-89% low, 1.0 mm along the outline 4 of 8 fresh meshes within 10%
+# and all within 25% (docs/model-check.md, "The inclusion's modulus is decided at the
+# probe's outline"). The automatic meshes have it (app.core.mesh.FINE_OUTLINE_MM); an
+# inclusion verdict on a mesh coarser there says so
+OUTLINE_ADVISED_MM = FINE_OUTLINE_MM
 
 
 def located_inclusion_settings(exp) -> MeshSettings:
@@ -1906,8 +1913,8 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
             if verdict == "inclusion":  # its modulus rests on the outline's mesh (Diagnosis.identified_text)
                 from app.core.mesh_check import identification_settings
 
-                used = identification_settings(exp, mesh_settings)
-                c.identified["outline_mm"] = float(used.outline_edge_mm or used.probe_edge_mm)  # None: the face's
+                used = identification_settings(exp, mesh_settings, c.inclusion)
+                c.identified["outline_mm"] = float(min(used.outline_edge_mm or np.inf, used.probe_edge_mm))
         except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate's fit stands
             say(f"{verdict}: not identified ({exc})")
         c.problem.release(keep=problem)
@@ -1924,18 +1931,25 @@ COARSER = 1.05
 
 def coarse_mesh_note(exp, mesh_settings) -> str:
     """Why a diagnosis on ``mesh_settings`` coarser than the experiment's automatic
-    sizes (far field or probe face) may find the mesh's own error, in words; ""
+    sizes (far field, probe face or its outline) may find the mesh's own error, in words; ""
     when they are not coarser (or None: the automatic ones). Measured: with
     nothing hidden, a 2.5 mm edge on a 30 x 14 mm probe face (the automatic one
     there is 2.0 mm) gave a probe slip on both blind seeds tried (23010, 23011;
     the current model's error 5.3 and 3.7 times its noise floor), and none on the
-    automatic mesh (docs/model-check.md, "Findings on a thin margin")."""
+    automatic mesh (docs/model-check.md, "Findings on a thin margin"); the face's
+    2.0 mm along its outline where 1.0 mm is automatic gave a probe slip on a
+    phantom with nothing hidden (41001)."""
     if mesh_settings is None:
         return ""
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
+
+    def outline(s: MeshSettings) -> float:
+        return min(s.outline_edge_mm or np.inf, s.probe_edge_mm)
+
     parts = [f"{what} {mine:g} mm against {theirs:g} mm" for what, mine, theirs in
              (("elements", mesh_settings.edge_mm, auto.edge_mm),
-              ("on the probe face", mesh_settings.probe_edge_mm, auto.probe_edge_mm))
+              ("on the probe face", mesh_settings.probe_edge_mm, auto.probe_edge_mm),
+              ("along its outline", outline(mesh_settings), outline(auto)))
              if mine > COARSER * theirs]
     if not parts:
         return ""
@@ -1956,12 +1970,6 @@ def coarse_mesh_note(exp, mesh_settings) -> str:
 # hidden (six) and 4.49-5.80 with a probe slip found (five)
 # (docs/model-check.md, "Findings on a thin margin, confirmed on a finer mesh")
 CONFIRM_BELOW = 3.0
-# a located inclusion's own modulus rests on the mesh along the probe face's outline:
-# at four hidden spheres' true places the automatic meshes (the outline at the face's
-# 2.0 mm) gave it 15-89% low, 1.0 mm along the outline 4 of 8 fresh meshes within 10%
-# and all within 25% (docs/model-check.md, "The inclusion's modulus is decided at the
-# probe's outline"); an inclusion verdict meshed coarser there says so
-OUTLINE_ADVISED_MM = 1.0
 # the effects confirmed so: a hyperelastic model would walk its load path cold on
 # the finer mesh (minutes), and an inclusion would be located again on it
 CONFIRMED_EFFECTS = JOINT_EFFECTS

@@ -66,7 +66,8 @@ class SpecimenTwin:
         truth_exp = exp
         for r in hidden_regions:
             truth_exp = replace(truth_exp, specimen=truth_exp.specimen.with_region(r))
-        # the truth is meshed finer than identification meshes are (no inverse crime)
+        # the truth is meshed finer than identification meshes are (no inverse crime):
+        # the automatic sizes times mesh_scale, the probe face's outline included
         settings = mesh_settings or auto_settings(truth_exp.specimen.size_mm, truth_exp.probe.face_rect_mm(),
                                                   truth_exp.specimen.regions).with_scale(mesh_scale)
         say("meshing the truth")

@@ -975,12 +975,15 @@ def test_a_mesh_coarser_than_the_automatic_one_is_said():
     exp = read_experiment(ROOT / "resources" / "demo")
     exp = dc_replace(exp, probe=dc_replace(exp.probe, face_mm=(30.0, 14.0)))
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
-    assert (auto.edge_mm, auto.probe_edge_mm) == (10.0, 2.0)
-    note = coarse_mesh_note(exp, MeshSettings(edge_mm=10.0, probe_edge_mm=2.5))
+    assert (auto.edge_mm, auto.probe_edge_mm, auto.outline_edge_mm) == (10.0, 2.0, 1.0)
+    note = coarse_mesh_note(exp, MeshSettings(edge_mm=10.0, probe_edge_mm=2.5, outline_edge_mm=1.0))
     assert note.startswith("the mesh is coarser than the automatic one (on the probe face 2.5 mm against 2 mm)")
     assert "mesh check" in note
     assert "elements 12 mm against 10 mm; on the probe face" in coarse_mesh_note(exp, MeshSettings(12.0, 2.5))
-    for finer in (None, auto, auto.with_scale(0.7), MeshSettings(edge_mm=10.0, probe_edge_mm=2.05)):
+    # the outline at the face's size (None), as every automatic mesh had it before 2026-12-01
+    assert "(along its outline 2 mm against 1 mm)" in coarse_mesh_note(exp, dc_replace(auto, outline_edge_mm=None))
+    for finer in (None, auto, auto.with_scale(0.7), MeshSettings(edge_mm=10.0, probe_edge_mm=2.05, outline_edge_mm=1.0),
+                  MeshSettings(edge_mm=10.0, probe_edge_mm=0.9)):  # a face finer than the outline's 1 mm
         assert coarse_mesh_note(exp, finer) == ""
     base = Candidate("", (), {"E_B_kPa": 18.0}, {}, {"chi2": 1.0, "force_rms_N": 0.02, "displacement_rms_px": 0.3})
     d = Diagnosis("x", base, [], "none", NoiseModel(0.02, 1481, 0.236, 318), 1.0, mesh_note=note)
@@ -1792,11 +1795,15 @@ def test_the_scan_and_the_placement_move_spheres_in_the_image_plane_of_a_turned_
     assert list(plane_point(base, (1.0, 0.0, 0.0), s + 1.5, z)) == [32.75, 45.0, 82.5]  # exactly
 
 
-def test_a_located_inclusion_is_meshed_with_the_looser_envelope(monkeypatch):
+def test_a_located_inclusion_is_meshed_with_the_looser_envelope_and_the_fine_outline(monkeypatch):
     """current_model() with an inclusion and automatic settings meshes with
-    LOCATED_EPSILON (the candidate and the added version alike); explicit
-    settings are kept as given."""
+    LOCATED_EPSILON and the probe face's outline at OUTLINE_ADVISED_MM, as the
+    automatic meshes have it (the candidate and the added version alike);
+    explicit settings are kept as given."""
+    from dataclasses import replace
+
     from app.core import diagnose as dg
+    from app.core.effects.inclusion import inclusion_region
     from app.core.mesh import auto_settings
 
     seen = []
@@ -1810,6 +1817,13 @@ def test_a_located_inclusion_is_meshed_with_the_looser_envelope(monkeypatch):
     auto = auto_settings(with_sphere.specimen.size_mm, with_sphere.probe.face_rect_mm(), with_sphere.specimen.regions)
     assert settings.epsilon == dg.LOCATED_EPSILON > auto.epsilon
     assert (settings.edge_mm, settings.probe_edge_mm) == (auto.edge_mm, auto.probe_edge_mm)
+    # the face's own size here is 1.6 mm; its outline at 1.0 mm, as in every automatic mesh
+    assert (auto.probe_edge_mm, auto.outline_edge_mm, settings.outline_edge_mm) == (1.6, 1.0, 1.0)
+    demo = read_experiment(ROOT / "resources" / "demo")  # paper size: the face at 2.0 mm, its outline at 1.0
+    paper = dg.located_inclusion_settings(replace(demo, specimen=demo.specimen.with_region(inclusion_region(inc))))
+    assert (paper.probe_edge_mm, paper.outline_edge_mm) == (2.0, 1.0)
+    fine = replace(exp, probe=replace(exp.probe, face_mm=(4.0, 4.0)))  # a face meshed finer than 1 mm keeps its size
+    assert dg.located_inclusion_settings(fine).outline_edge_mm is None
     dg.current_model(exp, inclusion=inc, mesh_settings=ID_MESH)
     assert seen[-1][1] == ID_MESH
     dg.current_model(exp)  # no inclusion: the experiment's own automatic settings

@@ -128,7 +128,9 @@ def test_the_simulators_truth_mesh_is_never_a_models_mesh(monkeypatch):
     size the mesh check and a diagnosis' confirmation of a thin finding mesh at.
     Under the same key the cache gave them the truth's own mesh (an inverse
     crime, found 2026-12-01); the truth's meshes are cached under a key of their
-    own."""
+    own. Its probe face's outline is meshed 0.7 times the finest outline an
+    identification uses (a located inclusion's 1.0 mm), not the face's 2.0 mm
+    times 0.7, which was coarser than that model (2026-12-01, evening)."""
     from app.core import twin
     from app.core.experiment import read_experiment
     from app.core.mesh import TRUTH, _mesh_key
@@ -140,7 +142,7 @@ def test_the_simulators_truth_mesh_is_never_a_models_mesh(monkeypatch):
         pass
 
     def meshed(exp, settings, **kw):
-        asked.update(kw)
+        asked.update(kw, settings=settings)
         raise Stop
 
     monkeypatch.setattr(twin, "specimen_mesh", meshed)
@@ -148,6 +150,8 @@ def test_the_simulators_truth_mesh_is_never_a_models_mesh(monkeypatch):
         twin.SpecimenTwin.build(read_experiment(Path(__file__).resolve().parents[2] / "resources" / "demo"),
                                 {"B": 18.0, "A": 63.0})
     assert asked.get("kind") == TRUTH
+    truth = asked["settings"]  # the demo's automatic sizes: 10 mm, 2.0 mm on the face
+    assert (truth.edge_mm, truth.probe_edge_mm, truth.outline_edge_mm) == pytest.approx((7.0, 1.4, 0.7))
 
 
 def _temp_folder(tmp_path, monkeypatch):

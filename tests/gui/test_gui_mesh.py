@@ -122,15 +122,24 @@ def test_automatic_mesh_sizes_by_default(window, noise_experiment, tmp_path):
 
 def test_the_outline_size_is_set_in_the_panel(window, tiny_experiment):
     """The "outline" box beside "Under the probe" sets the mesh's outline_edge_mm; its lowest value, "as
-    the face", leaves it unset; it is editable only with the sizes not automatic."""
+    the face", leaves it unset; it is editable only with the sizes not automatic, when it shows the
+    automatic size (1.0 mm where the face's is coarser)."""
+    from app.core.mesh import FINE_OUTLINE_MM, auto_settings
+
     window.open_experiment(tiny_experiment)
     s, panel = window.session, window.mesh_panel
+    exp = s.experiment
+    auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
     assert s.mesh_settings is None and not panel.outline_edge.isEnabled()
-    assert panel.outline_edge.text() == "as the face"
+    if auto.probe_edge_mm > FINE_OUTLINE_MM:
+        assert auto.outline_edge_mm == panel.outline_edge.value() == FINE_OUTLINE_MM
+    else:
+        assert auto.outline_edge_mm is None and panel.outline_edge.text() == "as the face"
     panel.auto_sizes.setChecked(False)
     assert panel.outline_edge.isEnabled()
-    panel.outline_edge.setValue(1.0)
-    assert s.mesh_settings.outline_edge_mm == 1.0
+    assert s.mesh_settings.outline_edge_mm == auto.outline_edge_mm  # unticking keeps the automatic sizes
+    panel.outline_edge.setValue(0.5)
+    assert s.mesh_settings.outline_edge_mm == 0.5
     assert s.mesh_settings.probe_edge_mm == panel.probe_edge.value()
     panel.outline_edge.setValue(0.0)
     assert s.mesh_settings.outline_edge_mm is None
