@@ -1937,8 +1937,8 @@ def coarse_mesh_note(exp, mesh_settings) -> str:
     there is 2.0 mm) gave a probe slip on both blind seeds tried (23010, 23011;
     the current model's error 5.3 and 3.7 times its noise floor), and none on the
     automatic mesh (docs/model-check.md, "Findings on a thin margin"); the face's
-    2.0 mm along its outline where 1.0 mm is automatic gave a probe slip on a
-    phantom with nothing hidden (41001)."""
+    2.0 mm along its outline where 1.0 mm is automatic gave a probe slip on all
+    five phantoms with nothing hidden tried (41001-41005)."""
     if mesh_settings is None:
         return ""
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)

@@ -648,10 +648,10 @@ PROBE_EDGE_MAX_MM = 2.0
 # the probe face's outline in an automatic mesh, where the face's own size is coarser:
 # on the paper's phantom 1.0 mm there (2.0 mm on the face) took the linear field on the
 # image plane from 0.53 to 0.23 px of a 0.55x finer mesh's, with 19% more vertices
-# (MeshSettings). With the face's size there, a nothing-hidden phantom whose truth was
-# meshed at 0.7 mm along the outline was diagnosed probe-slip (+575; 1.0 mm: none,
-# the slip -143), and a located inclusion's modulus came out 15-89% low at its true
-# place (docs/model-check.md, "The probe face's outline in the automatic mesh")
+# (MeshSettings). With the face's size there, five nothing-hidden phantoms whose truth
+# was meshed at 0.7 mm along the outline were all diagnosed probe-slip (+556 to +666;
+# 1.0 mm: none on all five), and a located inclusion's modulus came out 15-89% low at
+# its true place (docs/model-check.md, "The probe face's outline in the automatic mesh")
 FINE_OUTLINE_MM = 1.0
 
 
