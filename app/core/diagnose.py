@@ -992,10 +992,14 @@ class Diagnosis:
                       f"radius {r0:.1f}-{r1:.1f} mm: E_{inc['name']} {e0:.1f}-{e1:.1f} kPa, as size and "
                       f"stiffness trade off)")
         outline = self.identified.get("outline_mm")  # set for an inclusion verdict
-        if outline is not None and outline > OUTLINE_ADVISED_MM + 1e-9:
+        # a located inclusion's modulus rests on the mesh along the probe face's outline: at four
+        # hidden spheres' true places the face's 2.0 mm there gave it 15-89% low, 1.0 mm 4 of 8 fresh
+        # meshes within 10% and all within 25% (docs/model-check.md, "The inclusion's modulus is
+        # decided at the probe's outline"); a verdict on a mesh coarser there than the automatic says so
+        if outline is not None and outline > FINE_OUTLINE_MM + 1e-9:
             name = (inc or self.candidate("inclusion").inclusion)["name"]
             where += (f"; E_{name} rests on the mesh along the probe face's outline ({outline:g} mm here) more "
-                      f"than on the frames: mesh the outline at {OUTLINE_ADVISED_MM:g} mm, or check the mesh, to "
+                      f"than on the frames: mesh the outline at {FINE_OUTLINE_MM:g} mm, or check the mesh, to "
                       f"see how far it moves")
         return moduli + (f"; {others}" if others else "") + where
 
@@ -1203,13 +1207,6 @@ def noise_model(problem: EffectProblem, tracked: TrackedField) -> NoiseModel:
 # fTetWild's envelope (relative to the box diagonal) for a mesh with a located inclusion:
 # its own default, twice the specimen meshes' 5e-4
 LOCATED_EPSILON = 1e-3
-# a located inclusion's own modulus rests on the mesh along the probe face's outline:
-# at four hidden spheres' true places the automatic meshes (the outline at the face's
-# 2.0 mm) gave it 15-89% low, 1.0 mm along the outline 4 of 8 fresh meshes within 10%
-# and all within 25% (docs/model-check.md, "The inclusion's modulus is decided at the
-# probe's outline"). The automatic meshes have it (app.core.mesh.FINE_OUTLINE_MM); an
-# inclusion verdict on a mesh coarser there says so
-OUTLINE_ADVISED_MM = FINE_OUTLINE_MM
 
 
 def located_inclusion_settings(exp) -> MeshSettings:
@@ -1914,7 +1911,7 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
                 from app.core.mesh_check import identification_settings
 
                 used = identification_settings(exp, mesh_settings, c.inclusion)
-                c.identified["outline_mm"] = float(min(used.outline_edge_mm or np.inf, used.probe_edge_mm))
+                c.identified["outline_mm"] = float(used.outline_mm)
         except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate's fit stands
             say(f"{verdict}: not identified ({exc})")
         c.problem.release(keep=problem)
@@ -1942,14 +1939,10 @@ def coarse_mesh_note(exp, mesh_settings) -> str:
     if mesh_settings is None:
         return ""
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
-
-    def outline(s: MeshSettings) -> float:
-        return min(s.outline_edge_mm or np.inf, s.probe_edge_mm)
-
     parts = [f"{what} {mine:g} mm against {theirs:g} mm" for what, mine, theirs in
              (("elements", mesh_settings.edge_mm, auto.edge_mm),
               ("on the probe face", mesh_settings.probe_edge_mm, auto.probe_edge_mm),
-              ("along its outline", outline(mesh_settings), outline(auto)))
+              ("along its outline", mesh_settings.outline_mm, auto.outline_mm))
              if mine > COARSER * theirs]
     if not parts:
         return ""

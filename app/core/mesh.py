@@ -50,6 +50,12 @@ class MeshSettings:
     region_edge_mm: float | None = None  # size in and around regions (default: a fifth of their thinnest extent)
     outline_edge_mm: float | None = None
 
+    @property
+    def outline_mm(self) -> float:
+        """The element size along the probe face's outline: ``outline_edge_mm``, or the
+        face's own size where that is finer (or the outline's is unset)."""
+        return min(self.outline_edge_mm or np.inf, self.probe_edge_mm)
+
     def with_scale(self, factor: float) -> "MeshSettings":
         """Every length multiplied by ``factor`` (< 1 refines)."""
         r = None if self.region_edge_mm is None else self.region_edge_mm * factor

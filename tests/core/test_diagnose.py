@@ -1797,7 +1797,7 @@ def test_the_scan_and_the_placement_move_spheres_in_the_image_plane_of_a_turned_
 
 def test_a_located_inclusion_is_meshed_with_the_looser_envelope_and_the_fine_outline(monkeypatch):
     """current_model() with an inclusion and automatic settings meshes with
-    LOCATED_EPSILON and the probe face's outline at OUTLINE_ADVISED_MM, as the
+    LOCATED_EPSILON and the probe face's outline at FINE_OUTLINE_MM, as the
     automatic meshes have it (the candidate and the added version alike);
     explicit settings are kept as given."""
     from dataclasses import replace
@@ -1939,9 +1939,10 @@ def test_an_inclusion_verdict_on_a_coarse_outline_says_its_modulus_rests_on_that
     """At four hidden spheres' true places the automatic meshes (the probe face's
     outline at 2.0 mm) gave the sphere's modulus 15-89% low, and 1.0 mm along the
     outline within 25% (docs/model-check.md): an inclusion verdict identified on an
-    outline coarser than OUTLINE_ADVISED_MM says so, with the size used; one on a
+    outline coarser than FINE_OUTLINE_MM says so, with the size used; one on a
     fine outline, or an old session's without the size, does not."""
-    from app.core.diagnose import OUTLINE_ADVISED_MM, Candidate, Diagnosis, NoiseModel
+    from app.core.diagnose import Candidate, Diagnosis, NoiseModel
+    from app.core.mesh import FINE_OUTLINE_MM as OUTLINE_ADVISED_MM
 
     place = {"name": "I", "center_mm": [64.7, 45.0, 81.6], "radius_mm": 6.4}
     base = Candidate("", (), {"E_B_kPa": 17.9, "E_A_kPa": 63.8}, {}, {"chi2": 3000.0})
