@@ -19,6 +19,8 @@ sys.path.insert(0, str(ROOT))
 
 
 FIXED_MESHES = ROOT / "tests" / "data" / "meshes"
+# the tests that mesh on purpose: meshing itself, and the self-test a user runs on a lab PC
+MESHING_TESTS = ("tests/core/test_mesh.py::", "tests/test_selftest.py::")
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -40,4 +42,21 @@ def _mesh_cache(tmp_path_factory):
     dst.mkdir(parents=True, exist_ok=True)
     for f in FIXED_MESHES.glob("*.npz"):
         shutil.copy(f, dst / f.name)
+    from app.core import mesh
+
+    fresh: list[str] = []
+    tetwild = mesh._tetwild
+
+    def counted(*args, **kwargs):
+        fresh.append(os.environ.get("PYTEST_CURRENT_TEST", "?").rsplit(" ", 1)[0])
+        return tetwild(*args, **kwargs)
+
+    mesh._tetwild = counted
     yield
+    mesh._tetwild = tetwild
+    # a test that meshes afresh is not reproducible (the mesh moves from run to run;
+    # a fresh truth mesh of the tiny phantom failed CI once): commit its mesh (see
+    # the developer guide, "Mesh cache"). Only the tests of meshing itself mesh on purpose.
+    stray = sorted({t for t in fresh if not t.startswith(MESHING_TESTS)})
+    assert not stray, ("these tests made meshes that tests/data/meshes does not hold (run them with "
+                       f"ELASTOID_CACHE_DIR set to a copy of it and commit the new files): {stray}")
