@@ -49,6 +49,7 @@ class MeshSettings:
     epsilon: float = 5e-4  # fTetWild envelope, relative to the bounding box diagonal
     region_edge_mm: float | None = None  # size in and around regions (default: a fifth of their thinnest extent)
     outline_edge_mm: float | None = None
+    region_scale: float = 1.0  # multiplies that default (with_scale sets it; a given region_edge_mm is scaled itself)
 
     @property
     def outline_mm(self) -> float:
@@ -57,10 +58,13 @@ class MeshSettings:
         return min(self.outline_edge_mm or np.inf, self.probe_edge_mm)
 
     def with_scale(self, factor: float) -> "MeshSettings":
-        """Every length multiplied by ``factor`` (< 1 refines)."""
+        """Every length multiplied by ``factor`` (< 1 refines), the regions' automatic
+        sizes included: a truth meshed finer everywhere but inside the regions had
+        there the model's own elements (until 2026-12-01)."""
         r = None if self.region_edge_mm is None else self.region_edge_mm * factor
         o = None if self.outline_edge_mm is None else self.outline_edge_mm * factor
-        return MeshSettings(self.edge_mm * factor, self.probe_edge_mm * factor, self.grading, self.epsilon, r, o)
+        rs = self.region_scale if r is not None else self.region_scale * factor
+        return MeshSettings(self.edge_mm * factor, self.probe_edge_mm * factor, self.grading, self.epsilon, r, o, rs)
 
 
 @dataclass(frozen=True)
@@ -202,7 +206,7 @@ def input_surface(size_mm, probe_rect_mm, regions: tuple[Region, ...], settings:
 
 def region_edge_mm(region: Region, settings: MeshSettings) -> float:
     lo, hi = region.bounds_mm()
-    own = 0.2 * float(np.min(hi - lo))
+    own = 0.2 * float(np.min(hi - lo)) * settings.region_scale
     return min(settings.edge_mm, settings.region_edge_mm or own)
 
 
@@ -284,8 +288,11 @@ def _mesh_key(size_mm, probe_rect_mm, regions, settings, kind: str = "") -> str:
         return d
 
     sizes = asdict(settings)
-    if sizes["outline_edge_mm"] is None:  # the keys of meshes made before the setting existed
+    # the keys of meshes made before these settings existed
+    if sizes["outline_edge_mm"] is None:
         del sizes["outline_edge_mm"]
+    if sizes["region_scale"] == 1.0:
+        del sizes["region_scale"]
     d = {"v": MESH_VERSION, "size": list(size_mm), "probe": list(probe_rect_mm),
          "regions": [reg(r) for r in regions], "settings": sizes}
     if kind:  # a mesh of its own kind (the simulator's truth), never given to a model of the same inputs

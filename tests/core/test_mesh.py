@@ -31,6 +31,29 @@ def mesh():
     return build_mesh(SIZE, PROBE, REGIONS, SETTINGS)
 
 
+def test_a_scaled_mesh_is_finer_inside_the_regions_too():
+    """with_scale refines the regions' automatic sizes with the rest: the simulator's
+    truth (0.7) was once finer everywhere but inside the regions, where it had the
+    model's own elements. A region size given by the user is scaled once, not twice."""
+    from app.core.mesh import _mesh_key, region_edge_mm
+
+    auto = MeshSettings(edge_mm=9.0, probe_edge_mm=2.0)
+    fine = auto.with_scale(0.7)
+    for r in REGIONS[1:]:
+        assert region_edge_mm(r, fine) == pytest.approx(0.7 * region_edge_mm(r, auto))
+    given = MeshSettings(edge_mm=9.0, probe_edge_mm=2.0, region_edge_mm=2.5).with_scale(0.7)
+    assert (given.region_edge_mm, given.region_scale) == (pytest.approx(1.75), 1.0)
+    assert region_edge_mm(REGIONS[1], given) == pytest.approx(1.75)
+    # the sizing field at the sphere's centre follows
+    sphere = REGIONS[1]
+    for settings, want in ((auto, 0.2 * 14.0), (fine, 0.7 * 0.2 * 14.0)):
+        P, _, h = sizing_field(SIZE, PROBE, settings, (REGIONS[0], sphere))
+        inside = np.linalg.norm(P - np.asarray(sphere.center_mm), axis=1) < 0.5 * sphere.radius_mm
+        assert inside.any() and np.allclose(h[inside], want)
+    # another mesh under another key (unscaled settings keep their keys: the committed meshes still load)
+    assert _mesh_key(SIZE, PROBE, REGIONS, fine) != _mesh_key(SIZE, PROBE, REGIONS, replace(fine, region_scale=1.0))
+
+
 def test_every_region_kind_is_meshed_with_its_volume(mesh):
     q = quality(mesh, REGIONS)
     for name in ("S", "K", "C", "E", "B"):
