@@ -320,14 +320,16 @@ def _add_mesh_options(parser) -> None:
 
 
 def _mesh_settings(args, exp):
-    from app.core.mesh import MeshSettings, auto_settings
+    from dataclasses import replace
 
-    if not (args.mesh_edge_mm or args.probe_edge_mm or args.outline_edge_mm):
+    from app.core.mesh import auto_settings
+
+    given = {k: v for k, v in (("edge_mm", args.mesh_edge_mm), ("probe_edge_mm", args.probe_edge_mm),
+                               ("outline_edge_mm", args.outline_edge_mm)) if v}
+    if not given:
         return None
-    auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
-    return MeshSettings(edge_mm=args.mesh_edge_mm or auto.edge_mm,
-                        probe_edge_mm=args.probe_edge_mm or auto.probe_edge_mm,
-                        outline_edge_mm=args.outline_edge_mm or auto.outline_edge_mm)
+    # the sizes not given stay automatic (all of them: listing them again once dropped the outline)
+    return replace(auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions), **given)
 
 
 def cmd_diagnose(args) -> int:

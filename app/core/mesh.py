@@ -279,6 +279,9 @@ def _tetwild_job(workdir: str, edge, eps, threads, queue):
         queue.put(("error", repr(exc), None))
 
 
+_LATER_SETTINGS = {"outline_edge_mm": None, "region_scale": 1.0}  # MeshSettings' fields added later, at their defaults
+
+
 def _mesh_key(size_mm, probe_rect_mm, regions, settings, kind: str = "") -> str:
     def reg(r: Region):
         d = {k: v for k, v in asdict(r).items() if k not in ("surface_mesh", "file")}
@@ -287,12 +290,8 @@ def _mesh_key(size_mm, probe_rect_mm, regions, settings, kind: str = "") -> str:
                                         + np.ascontiguousarray(r.surface_mesh[1]).tobytes()).hexdigest()
         return d
 
-    sizes = asdict(settings)
-    # the keys of meshes made before these settings existed
-    if sizes["outline_edge_mm"] is None:
-        del sizes["outline_edge_mm"]
-    if sizes["region_scale"] == 1.0:
-        del sizes["region_scale"]
+    # settings added later are left out at their defaults: the meshes made before they existed keep their keys
+    sizes = {k: v for k, v in asdict(settings).items() if not (k in _LATER_SETTINGS and v == _LATER_SETTINGS[k])}
     d = {"v": MESH_VERSION, "size": list(size_mm), "probe": list(probe_rect_mm),
          "regions": [reg(r) for r in regions], "settings": sizes}
     if kind:  # a mesh of its own kind (the simulator's truth), never given to a model of the same inputs
