@@ -405,10 +405,13 @@ def test_identify_and_diagnose_say_when_the_default_frames_leave_some_out(capsys
 def test_the_element_size_options_set_the_mesh_and_keep_the_automatic_rest(command):
     """--outline-edge-mm (the size along the probe face's outline) alone keeps the
     automatic sizes elsewhere, and another size option keeps the automatic
-    outline (1.0 mm); with no size option the sizes stay automatic."""
+    outline (1.0 mm); with no size option the sizes stay automatic. --region-scale
+    refines the regions' automatic sizes alone."""
     from app import cli
+    from dataclasses import replace
+
     from app.core.experiment import read_experiment
-    from app.core.mesh import auto_settings
+    from app.core.mesh import auto_settings, region_edge_mm
 
     exp = read_experiment(ROOT / "resources" / "demo")
     auto = auto_settings(exp.specimen.size_mm, exp.probe.face_rect_mm(), exp.specimen.regions)
@@ -418,6 +421,13 @@ def test_the_element_size_options_set_the_mesh_and_keep_the_automatic_rest(comma
     assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, auto.probe_edge_mm, 0.8)
     s = cli._mesh_settings(parse([command, "resources/demo", "--probe-edge-mm", "1.5"]), exp)
     assert (s.edge_mm, s.probe_edge_mm, s.outline_edge_mm) == (auto.edge_mm, 1.5, 1.0) == (10.0, 1.5, auto.outline_edge_mm)
+    # --region-scale: the regions' automatic sizes (a located inclusion's too) times the factor, the rest automatic
+    s = cli._mesh_settings(parse([command, "resources/demo", "--region-scale", "0.5"]), exp)
+    assert s == replace(auto, region_scale=0.5)
+    a = exp.specimen.regions[1]
+    assert region_edge_mm(a, s) == pytest.approx(0.5 * region_edge_mm(a, auto))
+    with pytest.raises(SystemExit):
+        parse([command, "resources/demo", "--region-scale", "0"])
 
 
 def test_the_mesh_check_identifies_the_result_again_on_a_finer_mesh(tmp_path, capsys):
