@@ -319,8 +319,9 @@ def _add_mesh_options(parser) -> None:
                              "(default: the face's size)")
     parser.add_argument("--region-scale", type=_positive,
                         help="element size in and around the regions (a located inclusion's too) as a factor of the "
-                             "automatic one, a fifth of each region's thinnest extent (default 1; 0.5 fits a hidden "
-                             "stiff sphere's modulus much nearer the truth, at about twice the time)")
+                             "automatic one, a fifth of each region's thinnest extent (default 1). At a hidden stiff "
+                             "sphere's true place 0.5 fitted its modulus within 2%% where 1 fitted it 17%% low; about "
+                             "twice the unknowns, time and memory")
 
 
 def _mesh_settings(args, exp):

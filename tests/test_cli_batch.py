@@ -407,9 +407,9 @@ def test_the_element_size_options_set_the_mesh_and_keep_the_automatic_rest(comma
     automatic sizes elsewhere, and another size option keeps the automatic
     outline (1.0 mm); with no size option the sizes stay automatic. --region-scale
     refines the regions' automatic sizes alone."""
-    from app import cli
     from dataclasses import replace
 
+    from app import cli
     from app.core.experiment import read_experiment
     from app.core.mesh import auto_settings, region_edge_mm
 
