@@ -799,8 +799,15 @@ def test_a_verdict_of_none_says_why_and_names_an_effect_that_came_close():
     slip = Candidate("probe-slip", ("probe-slip",), {"E_B_kPa": 17.7}, {}, mis(2900.0, 1.53), 0, 5000.0, "slides")
     two = diag([comp, slip, hyper]).none_text()
     assert "But compressibility (score +5,680, 29% removed) and probe-slip (score +5,000, 26%) come close" in two
-    # nothing earns its parameters: the plain sentence
-    assert diag([hyper]).none_text().startswith("No candidate effect lowers the misfit by more than its parameters")
+    # nothing earns its parameters: the plain sentence, which says what the current model leaves beyond the noise
+    plain = diag([hyper]).none_text()
+    assert plain.startswith("No candidate effect lowers the misfit by more than its parameters")
+    assert "in the displacement 2.07 px, 10.9 times its noise floor" in plain and "two effects that mask" in plain
+    assert "as well as the noise allows" not in plain and "force" not in plain  # the force's 0.006 N is noise
+    quiet = Candidate("", (), base.parameters, {}, mis(8665.7, 0.2))  # 1.05 times the floor: nothing left
+    assert Diagnosis("x", quiet, [hyper], "none", noise, 1.0).none_text() == (
+        "No candidate effect lowers the misfit by more than its parameters cost: the current model explains the "
+        "data as well as the noise allows")
     # a verdict: no text, no near misses
     found = Candidate("compressibility", ("compressibility",), {"nu": 0.391}, {}, mis(2978.5, 0.5), 1, 5679.7, "",
                       material=True)
