@@ -14,14 +14,14 @@ trials are (the tets whose centroid lies in the sphere relabelled) and the
 sphere's modulus alone refitted, as ``place_by_identification`` does. Prints,
 per radius: the labelled volume's equivalent radius, E_I against the truth, and
 the cost against the true radius's with the jackknife standard error of that
-difference (the groups of ROI blocks of ``_place_spread``).
+difference (``jackknife_se``, over the groups of ROI blocks ``_place_spread`` uses).
 
 Measured 2026-12-02 (docs/model-check.md, "A stiff sphere's modulus needs a
 finer mesh about it"), seed 42014 (a 70 kPa sphere at (30, 45, 82) r 6): with
 the automatic region sizes (``--region-scale 1``) the true sphere fitted 57.1
 kPa and the cost was lowest at r 5.5 (73.0 kPa), 3 standard errors below the
-true radius's; with them halved (``--region-scale 0.5``), 71.1 kPa at the true radius, the lowest cost,
-r 5.5 1.5 and r 6.5 3 standard errors above it.
+true radius's; with them halved (``--region-scale 0.5``), 71.1 kPa at the
+true radius, the lowest cost, r 5.5 1.5 and r 6.5 3 standard errors above it.
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ def main(argv=None) -> int:
 
     import numpy as np
 
-    from app.core.diagnose import _cost_without_groups, _trial_builder, _with_inclusion, current_model
+    from app.core.diagnose import (_cost_without_groups, _trial_builder, _with_inclusion, current_model,
+                                    jackknife_se)
     from app.core.effects.model import fit
     from app.core.experiment import read_experiment
 
@@ -98,11 +99,7 @@ def main(argv=None) -> int:
           "| its standard error |")
     print("|---|---|---|---|---|---|")
     for r, r_eff, E, cost, groups in rows:
-        se = math.nan
-        if groups is not None and ref[4] is not None:
-            d = groups - ref[4]
-            k = len(d)
-            se = math.sqrt(max((k - 1) / k * float(np.sum((d - d.mean()) ** 2)), 0.0))
+        se = math.nan if groups is None or ref[4] is None else jackknife_se(groups - ref[4])
         print(f"| {r:g} | {r_eff:.2f} | {E:.1f} | {100 * (E / E_true - 1):+.1f}% | {cost - ref[3]:+.2e} | "
               f"{se:.1e} |")
     return 0
