@@ -1381,6 +1381,18 @@ def test_a_lower_poissons_ratio_hidden_by_a_sliding_bottom_is_fitted_with_it_and
     assert not unmasks_ratio("sliding-bottom", (), {"E_B_kPa": 15.85}, {"E_B_kPa": 17.95})
     assert unmasked_ratio_text(now, {"nu": 0.4435}).startswith(
         "with it Poisson's ratio moves from 0.496 to 0.444, further than the mesh alone moves it")
+    # confirmed on the finer mesh by the same pair (43005: the pair there +1,105, nu 0.450), said so
+    from dataclasses import replace
+
+    conf = {"effects": ["compressibility"], "verdict": "compressibility", "confirmed": True, "scale": 0.7,
+            "nodes": [3025, 7701], "ratio": 2.56, "excess_px": 0.428, "floor_px": 0.091,
+            "candidates": {"compressibility": {"score": 965.8, "material": True, "explained": 0.5, "unmet": ""}},
+            "masked_ratio": {**screen, "nu": 0.45, "score": 1105.3}, "seconds": 73.0}
+    thin_base = replace(base, misfit=mis(2540.8, 0.233))
+    c = Diagnosis("x", thin_base, out, "compressibility", NoiseModel(0.0209, 1481, 0.1136, 236), 1.0,
+                  confirmation=conf, masked_ratio=screen).confirmation_text()
+    assert c.endswith("compressibility is still a finding (score +966), fitted with the sliding bottom as here "
+                      "(Poisson's ratio 0.45 with it; the pair's score +1,105): it is not the mesh's"), c
     # without the screen's figures the same candidates make a near tie with the slip
     assert Diagnosis("x", base, out, "compressibility", NoiseModel(0.0209, 1481, 0.1136, 236), 1.0).rival == \
         "probe-slip"
