@@ -2310,7 +2310,7 @@ def _masked_ratio(ranked, base: Candidate, problem: EffectProblem, tracked, nois
             "chi2": round(float(tb.joint.misfit["chi2"]), 1), "score": round(pair_score, 1),
             "best_single": best.effect, "best_single_score": round(float(best.score), 1),
             "margin": round(margin, 1), "needed": round(needed, 1),
-            "yields": {e: r for e, r in tb.yields.items()},
+            "yields": dict(tb.yields),
             "displacement_rms_px": round(float(tb.joint.misfit["displacement_rms_px"]), 4),
             "seconds": round(time.perf_counter() - t0, 1)}
 
