@@ -908,7 +908,7 @@ class Diagnosis:
                     f"{m['effect']} and diagnose again: if the inclusion is there, the next diagnosis places it "
                     f"with the {m['effect'].replace('-', ' ')} in the model")
         return (f". Or {m['effect']} and an undescribed inclusion hide each other: {where}, and the two together "
-                f"would explain far more than any one effect {estimate}. Add {m['effect']} and diagnose again: if "
+                f"would explain more than any one effect {estimate}. Add {m['effect']} and diagnose again: if "
                 f"the inclusion is there, the next diagnosis names it")
 
     def _none_text(self, earning: list[Candidate]) -> tuple[str, str]:
@@ -1174,6 +1174,61 @@ def _identified_from(problem: EffectProblem, start: dict, cancel) -> dict:
     """Candidate.identified of ``problem`` identified from ``start`` (:func:`identify_from`), timed."""
     t0 = time.perf_counter()
     return _identified(identify_from(problem, start, cancel=cancel), t0)
+
+
+def _identify_verdict(out: list, verdict: str, tie_break, confirmation, base: Candidate, problem: EffectProblem,
+                      exp, mesh_settings, say, cancel) -> str:
+    """Identify the verdict's model as ``elastoid identify`` does (its candidate's
+    ``identified``, see :func:`_identified_verdict`) and return the verdict: the
+    same, or, when an inclusion's identified modulus went to a bound of the fit
+    (:func:`identified_at_bound`), the verdict without it, whose model is then
+    identified in turn."""
+    while True:  # at most twice: only an inclusion verdict falls
+        c = next((c for c in out if c.effect == verdict), None)
+        if c is None or c.problem is None:
+            return verdict
+        say(f"identifying the model with {verdict} (NMI and force, from its fit)")
+        try:
+            c.identified = _identified_verdict(c.problem, verdict, c.parameters, say, cancel)
+            if verdict == "inclusion":  # its modulus rests on the outline's mesh (Diagnosis.identified_text)
+                from app.core.mesh_check import identification_settings
+
+                used = identification_settings(exp, mesh_settings, c.inclusion)
+                c.identified["outline_mm"] = float(used.outline_mm)
+        except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate's fit stands
+            say(f"{verdict}: not identified ({exc})")
+        c.problem.release(keep=problem)
+        why = identified_at_bound(c) if verdict == "inclusion" else ""
+        if not why:
+            return verdict
+        say(f"inclusion: no finding ({why})")
+        c.negligible, c.material, c.unmet = why, False, ""
+        verdict = (confirmed_verdict(out, tie_break, verdict, confirmation, base)
+                   if confirmation and confirmation["confirmed"] is False else choose_verdict(out, tie_break))
+
+
+def identified_at_bound(c: Candidate) -> str:
+    """Why an inclusion verdict is no finding once its model was identified as
+    ``elastoid identify`` does (and the sphere placed by that identification): its
+    modulus went to a bound of the fit (app.core.effects.inclusion.bound_text), or
+    "". The candidate's maximum-likelihood fit is checked for a bound when it is
+    scored; the identification can still take the modulus there. Blind phantom
+    42011 (a 40 kPa sphere at (66, 45, 84) mm, r 6, on the right edge of the frames'
+    view, 2026-12-02): a softer sphere was located left of the view, (21.5, 45, 90.1)
+    mm, fitted at 9.9 kPa (+283), and the identification placed it further out at
+    (15.7, 45, 90.1) mm with 0.1 kPa, the lower bound; the verdict was that
+    inclusion, a fluid in the wrong place."""
+    from app.core.effects.inclusion import bound_text
+
+    if not c.identified or not c.inclusion:
+        return ""
+    sphere = c.identified.get("inclusion") or c.inclusion
+    why = bound_text(c.identified["parameters"].get(f"E_{c.inclusion['name']}_kPa", math.nan))
+    if not why:
+        return ""
+    placed = (f"and placed by it at {_sphere_text(sphere)}, " if c.identified.get("inclusion")
+              else f"at {_sphere_text(sphere)}, ")
+    return f"identified as elastoid identify does (NMI and force) {placed}{why}"
 
 
 def _identified_verdict(problem: EffectProblem, verdict: str, start: dict, say, cancel) -> dict:
@@ -1951,19 +2006,9 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     masked, screen = None, None
     if verdict in ("none", "inclusion") and prep is not None and prep.guess is not None:
         masked, screen = _masked_pair(out, base, prep.guess, tracked, noise, lnN, say, cancel)
-    c = next((c for c in out if c.effect == verdict), None)
-    if c is not None and c.problem is not None and not _confirming:
-        say(f"identifying the model with {verdict} (NMI and force, from its fit)")
-        try:
-            c.identified = _identified_verdict(c.problem, verdict, c.parameters, say, cancel)
-            if verdict == "inclusion":  # its modulus rests on the outline's mesh (Diagnosis.identified_text)
-                from app.core.mesh_check import identification_settings
-
-                used = identification_settings(exp, mesh_settings, c.inclusion)
-                c.identified["outline_mm"] = float(used.outline_mm)
-        except (ElastoidError, ValueError, np.linalg.LinAlgError) as exc:  # the candidate's fit stands
-            say(f"{verdict}: not identified ({exc})")
-        c.problem.release(keep=problem)
+    if not _confirming:
+        verdict = _identify_verdict(out, verdict, tie_break, confirmation, base, problem, exp, mesh_settings, say,
+                                    cancel)
     return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked,
                      tie_break, _memory_note(prep, n_lean, made_room, _refused(confirmation)), masked, screen,
                      confirmation,

@@ -1656,6 +1656,77 @@ def test_the_placement_spread_holds_the_trials_the_frames_do_not_tell_apart():
     assert _place_spread([unknown], 1.0) is None and _place_spread([], 1.0) is None
 
 
+def test_an_inclusion_verdict_whose_identified_modulus_goes_to_a_bound_is_no_finding(monkeypatch):
+    """The verdict's model is identified as identify does, and the identification
+    places the sphere. Where that takes the inclusion's modulus to a bound of the
+    fit, the sphere stands for a pattern it cannot represent: the inclusion is no
+    finding, the verdict goes to the next finding (or none), and that one's model
+    is identified in turn. Blind phantom 42011 (a 40 kPa sphere on the right edge
+    of the view): a softer sphere located left of the view, 9.9 kPa in the
+    candidate's fit (+283), was placed further out by the identification with
+    0.1 kPa, and had been the verdict."""
+    import app.core.diagnose as dg
+    import app.core.mesh_check as mesh_check
+    from app.core.diagnose import Candidate, _identify_verdict, identified_at_bound
+
+    class Model:  # the part of an EffectProblem the step uses
+        released = 0
+
+        def release(self, keep=None):
+            Model.released += 1
+
+    sphere = {"name": "I", "center_mm": [21.5, 45.0, 90.1], "radius_mm": 5.4}
+    placed = {"name": "I", "center_mm": [15.7, 45.0, 90.1], "radius_mm": 5.4}
+    misfit = {"chi2": 1000.0, "displacement_excess_px": 0.2}
+
+    def candidates(e_placed):
+        inc = Candidate("inclusion", ("inclusion",), {"E_B_kPa": 18.3, "E_A_kPa": 62.3, "E_I_kPa": 9.9}, {}, misfit,
+                        4, 283.0, "a softer region", sphere, problem=Model(), material=True)
+        slip = Candidate("probe-slip", ("probe-slip",), {"E_B_kPa": 18.0, "E_A_kPa": 63.0}, {}, misfit, 1, 200.0,
+                         "the tissue slides", problem=Model(), material=True)
+        return [inc, slip], e_placed
+
+    identified = []
+
+    def identify(problem, verdict, start, say, cancel):
+        identified.append(verdict)
+        if verdict == "inclusion":
+            return {"parameters": {**start, "E_I_kPa": e_placed}, "cost": {"total": -1.0}, "seconds": 1.0,
+                    "inclusion": placed}
+        return {"parameters": dict(start), "cost": {"total": -1.0}, "seconds": 1.0}
+
+    monkeypatch.setattr(dg, "_identified_verdict", identify)
+    monkeypatch.setattr(mesh_check, "identification_settings", lambda *a: type("S", (), {"outline_mm": 1.0}))
+    said = []
+    base = Candidate("", (), {}, {}, misfit)
+    # placed at the lower bound: the inclusion falls, and the slip is the verdict, identified in its turn
+    out, e_placed = candidates(0.1)
+    assert _identify_verdict(out, "inclusion", None, None, base, None, None, None, said.append, None) == "probe-slip"
+    assert identified == ["inclusion", "probe-slip"] and out[1].identified["parameters"]["E_B_kPa"] == 18.0
+    inc = out[0]
+    assert not inc.material and inc.identified["parameters"]["E_I_kPa"] == 0.1  # kept: the user may add it anyway
+    assert inc.negligible == identified_at_bound(inc)
+    assert inc.negligible.startswith("identified as elastoid identify does (NMI and force) and placed by it at "
+                                     "(15.7, 45.0, 90.1) mm, radius 5.4 mm, its modulus went to the fit's lower "
+                                     "bound (0.1 kPa: as soft as a fluid)"), inc.negligible
+    assert f"inclusion: no finding ({inc.negligible})" in said
+    assert inc.explanation.endswith(f"(but {inc.negligible}, so it is not a verdict)"), inc.explanation
+    # with no other finding, none (the current model's identification is the diagnosis' own)
+    identified.clear()
+    out, e_placed = candidates(10000.0)
+    out[1].material = False
+    assert _identify_verdict(out, "inclusion", None, None, base, None, None, None, said.append, None) == "none"
+    assert identified == ["inclusion"] and "upper bound (10,000 kPa: a rigid body)" in out[0].negligible
+    # a modulus inside the bounds: the verdict stands, whether the sphere moved or not
+    identified.clear()
+    out, e_placed = candidates(14.0)
+    assert _identify_verdict(out, "inclusion", None, None, base, None, None, None, said.append, None) == "inclusion"
+    assert identified == ["inclusion"] and out[0].material and not out[0].negligible
+    assert identified_at_bound(Candidate("inclusion", (), {}, {}, {}, inclusion=sphere,
+                                         identified={"parameters": {"E_I_kPa": 0.1}})).startswith(
+        "identified as elastoid identify does (NMI and force) at (21.5, 45.0, 90.1) mm, radius 5.4 mm, its modulus")
+
+
 @pytest.mark.parametrize("short_of_memory", [False, True])
 def test_a_rival_place_is_meshed_and_fitted_too_and_the_better_fit_kept(tmp_path_factory, monkeypatch,
                                                                          short_of_memory):
