@@ -920,7 +920,13 @@ class Diagnosis:
                 f"{MATERIAL_CHI2_PER_COMPONENT:g} per measurement, or fit no physical change")
         misses = self.near_misses()[:2]
         if not misses:
-            return self._within_floor_text(earning) or (text, "")
+            within = self._within_floor_text(earning)
+            if within:
+                return within
+            top = max(earning, key=lambda c: c.score)
+            if top.negligible:  # e.g. an inclusion verdict whose identified modulus went to a bound
+                text += f". The best of them, {top.effect} (score {top.score:+,.0f}), is no finding: {top.negligible}"
+            return text, ""
         settle = (f"Frames recorded closer in strain (about 2% apart) are tracked more precisely and usually settle "
                   f"it; if the setup makes {'it' if len(misses) == 1 else 'one of them'} plausible "
                   f"({'; '.join(INFO[c.effect].title for c, _ in misses)}), add "
