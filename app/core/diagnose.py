@@ -925,7 +925,7 @@ class Diagnosis:
                 return within
             top = max(earning, key=lambda c: c.score)
             if top.negligible:  # e.g. an inclusion verdict whose identified modulus went to a bound
-                text += f". The best of them, {top.effect} (score {top.score:+,.0f}), is no finding: {top.negligible}"
+                text += f". The best of them, {top.effect} (score {top.score:+,.0f}), does not count: {top.negligible}"
             return text, ""
         settle = (f"Frames recorded closer in strain (about 2% apart) are tracked more precisely and usually settle "
                   f"it; if the setup makes {'it' if len(misses) == 1 else 'one of them'} plausible "

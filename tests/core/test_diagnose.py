@@ -1107,7 +1107,7 @@ def test_why_a_candidate_is_no_finding_says_what_it_did():
     # a best candidate that fits no physical change is not offered
     neg = Candidate("compressibility", ("compressibility",), {"nu": 0.486}, {}, after, 1, 150.0, "", negligible="x")
     text = Diagnosis("x", base, [neg], "none", NoiseModel(0.0196, 1481, 0.122, 242), 1.0).none_text()
-    assert "plausible" not in text and text.endswith("The best of them, compressibility (score +150), is no finding: x")
+    assert "plausible" not in text and text.endswith("The best of them, compressibility (score +150), does not count: x")
     # with an error beyond 1.5 times its floor, no such sentence
     assert "already within" not in Diagnosis("x", Candidate("", (), {}, {}, mis(454.85, 0.3)), [slide], "none",
                                               NoiseModel(0.0196, 1481, 0.122, 242), 1.0).none_text()
@@ -1720,7 +1720,7 @@ def test_an_inclusion_verdict_whose_identified_modulus_goes_to_a_bound_is_no_fin
     from app.core.diagnose import Diagnosis, NoiseModel
 
     why = Diagnosis("x", base, out, "none", NoiseModel(0.02, 1481, 0.12, 236), 1.0).none_text()
-    assert why.endswith(f"The best of them, inclusion (score +283), is no finding: {out[0].negligible}"), why
+    assert why.endswith(f"The best of them, inclusion (score +283), does not count: {out[0].negligible}"), why
     # a modulus inside the bounds: the verdict stands, whether the sphere moved or not
     identified.clear()
     out, e_placed = candidates(14.0)
