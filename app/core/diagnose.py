@@ -2015,6 +2015,8 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     if not _confirming:
         verdict = _identify_verdict(out, verdict, tie_break, confirmation, base, problem, exp, mesh_settings, say,
                                     cancel)
+        if verdict not in ("none", "inclusion"):  # an inclusion verdict fell to another effect: no masked pair
+            masked = None
     return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked,
                      tie_break, _memory_note(prep, n_lean, made_room, _refused(confirmation)), masked, screen,
                      confirmation,
