@@ -1228,13 +1228,12 @@ def identified_at_bound(c: Candidate) -> str:
 
     if not c.identified or not c.inclusion:
         return ""
-    sphere = c.identified.get("inclusion") or c.inclusion
     why = bound_text(c.identified["parameters"].get(f"E_{c.inclusion['name']}_kPa", math.nan))
     if not why:
         return ""
-    placed = (f"and placed by it at {_sphere_text(sphere)}, " if c.identified.get("inclusion")
-              else f"at {_sphere_text(sphere)}, ")
-    return f"identified as elastoid identify does (NMI and force) {placed}{why}"
+    placed = c.identified.get("inclusion")
+    where = f"and placed by it at {_sphere_text(placed)}" if placed else f"at {_sphere_text(c.inclusion)}"
+    return f"identified as elastoid identify does (NMI and force) {where}, {why}"
 
 
 def _identified_verdict(problem: EffectProblem, verdict: str, start: dict, say, cancel) -> dict:
