@@ -1576,7 +1576,8 @@ def _sphere_text(sphere: dict) -> str:
     return f"({x:.1f}, {y:.1f}, {z:.1f}) mm, radius {sphere['radius_mm']:.1f} mm"
 
 
-def _sphere_search(problem: EffectProblem, params: dict, value, more, cancel, what: str) -> None:
+def _sphere_search(problem: EffectProblem, params: dict, value, more, cancel, what: str,
+                   alone: str | None = None) -> None:
     """The compass search (:func:`compass_search`) of the inclusion's centre in the
     image plane and its radius, from ``problem``'s (a model with the ``inclusion``
     effect, fitted at ``params``). Every trial is on ``problem``'s own mesh, which
@@ -1589,10 +1590,11 @@ def _sphere_search(problem: EffectProblem, params: dict, value, more, cancel, wh
     WALL_GAP_MM to the specimen's faces are not tried (as in the scan): on a
     blind paper-size phantom the search otherwise pushed a sphere 10 mm deep up
     into the probe's face, to fit the contact's misfit. ``more()`` says whether
-    another trial may be made."""
+    another trial may be made. ``alone``: the one modulus ``value`` fits (its
+    trial models are trained on it alone: :func:`_trial_builder`)."""
     from app.core.effects.inclusion import plane_coordinates, plane_point
 
-    build = _trial_builder(problem, params, cancel, what)
+    build = _trial_builder(problem, params, cancel, what, alone)
     inc = problem.inclusion
     size = np.asarray(problem.exp.specimen.size_mm, float)
     lateral = np.asarray(problem.exp.probe.lateral_axis, float)
@@ -1646,11 +1648,13 @@ def _sphere_labels(mesh, exp, name: str):
     return labels
 
 
-def _trial_builder(problem: EffectProblem, params: dict, cancel, what: str):
+def _trial_builder(problem: EffectProblem, params: dict, cancel, what: str, alone: str | None = None):
     """``build(sphere)``: ``problem``'s model (with the ``inclusion`` effect, fitted
     at ``params``) with its inclusion moved to ``sphere`` on the same mesh (the
     tets whose centroid lies in it relabelled), or None for a sphere that holds
-    no tet or reaches closer than WALL_GAP_MM to the specimen's faces."""
+    no tet or reaches closer than WALL_GAP_MM to the specimen's faces. ``alone``:
+    the one modulus the trial's fits vary (its reduced model is trained on that
+    modulus alone), else every modulus."""
     inc = problem.inclusion
     if inc is None or "inclusion" not in problem.effects:
         raise ElastoidError(f"{what} needs a model with an inclusion (add the inclusion effect first)")
@@ -1673,7 +1677,7 @@ def _trial_builder(problem: EffectProblem, params: dict, cancel, what: str):
             mesh=relabelled, operator=relabel(problem.fe.op, relabelled), frames=problem.frames,
             roi_px=problem.roi, nu=problem.nu, cost=problem.cost_kind, inclusion=sphere,
             near_kPa=problem.moduli(params), preconditioner=problem.rm, cancel=cancel, rom_tol=REFINE_ROM_TOL,
-            near_factor=REFINE_NEAR_FACTOR)
+            near_factor=REFINE_NEAR_FACTOR, near_alone=alone)
 
     return build
 
@@ -1683,7 +1687,9 @@ def _trial_builder(problem: EffectProblem, params: dict, cancel, what: str):
 # sphere of radius 6 mm (2026-11-30, `elastoid diagnose`, 16 trials each) it took E_I
 # from -16.4% to +0.8% and from +27.4% to -3.6%, the centre from 3.3 and 2.5 mm off to
 # 0.8 and 0.7 mm, the radius from 6.4 and 5.4 mm to 5.6 and 5.8 (truth 6); 4-5 s a
-# trial, most of it building the trial's model (relabelling, training its reduced model)
+# trial, most of it building the trial's model (relabelling, training its reduced model),
+# 3.6 s since the trials' reduced models are trained on the inclusion's modulus alone
+# (bench/inclusion_place.py: 57.5 s against 98.7 s for 16 trials, a sweep beside it)
 PLACE_MAX_TRIALS = 16
 
 
@@ -1724,7 +1730,7 @@ def place_by_identification(problem: EffectProblem, params: dict, *, max_trials:
 
     made = problem.rm.factorize(problem.theta(params))  # held for the search's trials and the last fit
     try:
-        _sphere_search(problem, params, value, lambda: n[0] < max_trials, cancel, "placing the inclusion")
+        _sphere_search(problem, params, value, lambda: n[0] < max_trials, cancel, "placing the inclusion", own)
         if best[0] is None:
             return None, None, n[0], None
         tp = _trial_builder(problem, params, cancel, "placing the inclusion")(best[0])

@@ -35,7 +35,8 @@ from app.core.effects.compressibility import LameReducedModel, lame_theta
 from app.core.effects.viscoelastic import prony_force
 from app.core.errors import Cancelled, ElastoidError
 from app.core.fem import check_poisson, interpolation_matrix
-from app.core.forward import ReducedModel, build_model, local_training_set, region_terms, training_set
+from app.core.forward import (ReducedModel, build_model, line_training_set, local_training_set, region_terms,
+                               training_set)
 from app.core.identify import (BOUNDS_KPA, EvalReport, Problem, Result, check_roi, check_starts, chosen_frames,
                                nelder_mead)
 from app.core.mesh import MeshSettings, TetMesh, specimen_mesh
@@ -111,7 +112,8 @@ class EffectProblem(Problem):
                         inclusion: dict | None = None, progress: Callable[[str], None] | None = None,
                         cancel: threading.Event | None = None, near_kPa=None,
                         preconditioner: ReducedModel | None = None, rom_tol: float | None = None,
-                        near_factor: float = 3.0, operator=None, **_ignored) -> "EffectProblem":
+                        near_factor: float = 3.0, operator=None, near_alone: str | None = None,
+                        **_ignored) -> "EffectProblem":
         """Mesh, assemble and train what the effects need. ``base``: a problem on the
         same mesh whose FE model and reduced model are reused when the effects
         leave them unchanged (viscoelastic, hyperelastic). ``near_kPa``: moduli the
@@ -123,7 +125,10 @@ class EffectProblem(Problem):
         (:meth:`ReducedModel.borrow_preconditioner`). ``rom_tol``: the new reduced
         model's relative residual tolerance (ReducedModel's default unless given).
         ``operator``: the stiffness terms of ``mesh``, already assembled (e.g.
-        :func:`app.core.fem.relabel` of a model on the same tets)."""
+        :func:`app.core.fem.relabel` of a model on the same tets). ``near_alone``:
+        the one modulus the fits will vary (a name of ``parameter_names``): the
+        new reduced model is trained on that modulus alone about ``near_kPa``
+        (:func:`app.core.forward.line_training_set`; not with Poisson's ratio free)."""
         say = progress or (lambda s: None)
         effects = check(effects)
         if "inclusion" in effects and inclusion is None:  # else it would be the model without it, named with it
@@ -163,7 +168,13 @@ class EffectProblem(Problem):
                 if free_nu:
                     rm.train_default(near_kPa=near)
                 else:
-                    rm.train(training_set(n) if near is None else local_training_set(near, near_factor))
+                    if near is None:
+                        rm.train(training_set(n))
+                    elif near_alone is not None:
+                        names = [f"E_{r}_kPa" for r in mesh.region_names]
+                        rm.train(line_training_set(near, names.index(near_alone), near_factor))
+                    else:
+                        rm.train(local_training_set(near, near_factor))
             say(f"reduced model: {rm.V.shape[1]} basis vectors")
         return cls(exp, mesh, fe, rm, effects=effects, nu=nu, cost=cost, frames=frames, roi_px=roi_px,
                    force_weight=force_weight, bins=bins, inclusion=inclusion, similarity=similarity)
