@@ -704,6 +704,8 @@ class Diagnosis:
     mesh_note: str = ""
     # compressibility fitted with the sliding bottom, which can hide it (see _masked_ratio); None when not screened
     masked_ratio: dict | None = None
+    # an inclusion verdict at the probe's contact while a probe slip earns its parameters too (see contact_of)
+    contact: dict | None = None
 
     def candidate(self, effect: str) -> Candidate:
         return next(c for c in self.candidates if c.effect == effect)
@@ -972,6 +974,19 @@ class Diagnosis:
                 f"{with_it}. These measurements cannot show a further effect; if the setup makes it plausible "
                 f"({INFO[best.effect].title}), add it and compare the versions"), best.effect
 
+    def contact_advice(self) -> str:
+        """What to weigh when the inclusion verdict lies at the probe's contact and a
+        probe slip also earns its parameters (:func:`contact_of`), in words ("" else)."""
+        k = self.contact
+        if not k:
+            return ""
+        where = "under the probe's face" if k["outside_mm"] <= 0 else "at the edge of the probe's face"
+        return (f"the inclusion lies {where}, its top {k['top_gap_mm']:.1f} mm under the surface: a region there "
+                f"changes how the face meets the tissue, as a slipping probe does, and {k['effect']} earns its "
+                f"parameters too (score {k['score']:+,.0f} against {k['verdict_score']:+,.0f}). If the probe may "
+                f"have slipped (a wet or smooth face, a sloping surface), add {k['effect']} instead and compare "
+                f"the versions' errors")
+
     def tie_advice(self) -> str:
         """What to do about a near tie, in words ("" when there is none)."""
         r = self.rival
@@ -1050,7 +1065,7 @@ class Diagnosis:
                 "noise": {**asdict(self.noise), "pair_sigma_px": list(self.noise.pair_sigma_px)},
                 "seconds": self.seconds, "tie_break": None if self.tie_break is None else self.tie_break.state(),
                 "masked": self.masked, "masked_screen": self.masked_screen, "confirmation": self.confirmation,
-                "mesh_note": self.mesh_note, "masked_ratio": self.masked_ratio}
+                "mesh_note": self.mesh_note, "masked_ratio": self.masked_ratio, "contact": self.contact}
 
     @classmethod
     def from_state(cls, d: dict) -> "Diagnosis":
@@ -1060,7 +1075,7 @@ class Diagnosis:
                    [Candidate.from_state(c) for c in d["candidates"]], d["verdict"], noise, float(d["seconds"]),
                    tie_break=None if tb is None else TieBreak.from_state(tb), masked=d.get("masked"),
                    masked_screen=d.get("masked_screen"), confirmation=d.get("confirmation"),
-                   mesh_note=d.get("mesh_note", ""), masked_ratio=d.get("masked_ratio"))
+                   mesh_note=d.get("mesh_note", ""), masked_ratio=d.get("masked_ratio"), contact=d.get("contact"))
 
     def rank_of(self, effect: str) -> int:
         """1-based rank of an effect among the candidates."""
@@ -1082,6 +1097,7 @@ class Diagnosis:
                 "masked_pair": self.masked,
                 "masked_screen": self.masked_screen,
                 "masked_ratio": self.masked_ratio,
+                "contact": self.contact,
                 "confirmation": self.confirmation,
                 "mesh_note": self.mesh_note or None,
                 "noise_model": self.noise.describe(),
@@ -1109,6 +1125,8 @@ class Diagnosis:
             out.append(f"why: {self.none_text(with_masked=False)}")
         if self.rival:
             out.append(f"near tie: {self.tie_advice()}")
+        if self.contact:
+            out.append(f"contact: {self.contact_advice()}")
         if self.masked:  # after none: "Or ..." (the why line's sentence it follows)
             out.append(f"masked: {self.masked_text() if self.verdict != 'none' else self.masked_sentence()}")
         if self.memory_note:
@@ -2025,7 +2043,34 @@ def diagnose(exp, *, effects=(), candidates=None, problem: EffectProblem | None 
     return Diagnosis(str(exp.path or ""), base, out, verdict, noise, time.perf_counter() - t0, comparison, tracked,
                      tie_break, _memory_note(prep, n_lean, made_room, _refused(confirmation)), masked, screen,
                      confirmation,
-                     "" if _confirming else coarse_mesh_note(exp, mesh_settings), masked_ratio)
+                     "" if _confirming else coarse_mesh_note(exp, mesh_settings), masked_ratio,
+                     contact_of(out, verdict, exp))
+
+
+def contact_of(candidates: list, verdict: str, exp) -> dict | None:
+    """When the verdict is an inclusion that reaches the probe's contact
+    (:func:`app.core.effects.inclusion.at_contact`, the identified sphere if it was
+    placed) and the probe slip earns its parameters as a physical change too: the
+    slip's and the verdict's scores and where the sphere lies (top_gap_mm,
+    outside_mm: its centre's distance outside the face's footprint). None else. A
+    soft sphere just under the face's edge stood in for a hidden slip on two blind
+    phantoms; the verdict stands (a real inclusion can lie there), and the report
+    says what to weigh."""
+    from app.core.effects.inclusion import at_contact, contact_gaps
+
+    if verdict != "inclusion":
+        return None
+    v = next(c for c in candidates if c.effect == verdict)
+    slip = next((c for c in candidates if c.effect == "probe-slip"), None)
+    sphere = (v.identified or {}).get("inclusion") or v.inclusion
+    if slip is None or slip.score <= 0 or slip.negligible or not slip.material or sphere is None:
+        return None
+    size, face = exp.specimen.size_mm, exp.probe.face_rect_mm()
+    if not at_contact(sphere, size, face):
+        return None
+    top, outside = contact_gaps(sphere, size, face)
+    return {"effect": slip.effect, "score": round(float(slip.score), 3), "verdict_score": round(float(v.score), 3),
+            "top_gap_mm": round(top, 2), "outside_mm": round(outside, 2)}
 
 
 # a user's mesh is coarser than the automatic one when an element size exceeds the

@@ -246,9 +246,9 @@ def _versions_svg(labels, series, width=560, height=220) -> str:
 
 def verdict_html(parts: tuple[str, str, str, str], tie_style: str = "") -> str:
     """A diagnosis' verdict in words (head, the rest, the masked pair's sentence or
-    "", the near-tie advice or ""; app.gui.models.modelcheck.verdict_parts) as HTML
-    paragraphs: the head in bold, then the rest; the masked pair's sentence with its
-    first word ("But", "Or") in bold; the near tie after a warning sign, in
+    "", the advice (near tie, probe contact) or ""; app.gui.models.modelcheck.verdict_parts)
+    as HTML paragraphs: the head in bold, then the rest; the masked pair's sentence
+    with its first word ("But", "Or") in bold; the advice after a warning sign, in
     ``tie_style`` (a CSS declaration). The window's verdict box and the report."""
     head, rest, masked, tie = parts
     out = f"<b>{html.escape(head)}</b>{html.escape(rest)}"
@@ -257,7 +257,7 @@ def verdict_html(parts: tuple[str, str, str, str], tie_style: str = "") -> str:
         out += f"<br><br><b>{html.escape(first)}</b> {html.escape(after)}"
     if tie:
         style = f" style='{tie_style}'" if tie_style else ""
-        out += f"<br><br><span{style}>\u26a0 Near tie: {html.escape(tie)}.</span>"
+        out += f"<br><br><span{style}>\u26a0 {html.escape(tie)}</span>"
     return out
 
 

@@ -2165,3 +2165,59 @@ def test_an_inclusion_verdict_on_a_coarse_outline_says_its_modulus_rests_on_that
         assert "rests on the mesh" not in verdict(fine).identified_text()
     d = verdict(2.0)
     assert Diagnosis.from_state(d.state()).identified_text() == text  # a session file keeps it
+
+
+def test_an_inclusion_verdict_at_the_probes_contact_says_a_slip_fits_too():
+    """Numbers from blind face-slip+52000 (a probe slip hidden under a 30 x 14 mm
+    face; docs/model-check.md, "A fresh blind sweep"): the verdict was a soft
+    sphere placed at (29.2, 45, 88.8) mm, radius 6.4, its top 0.8 mm under the
+    surface at the face's edge (x 30), scoring +985 against the slip's +678. The
+    verdict stands (a real inclusion can lie there), and the report says that a
+    region there changes the contact as a slip does; away from the face, or with
+    the slip no finding, it says nothing."""
+    from dataclasses import replace
+
+    from app.core.diagnose import Candidate, Diagnosis, NoiseModel, contact_of
+    from app.core.effects.inclusion import at_contact, contact_gaps
+    from app.core.export import verdict_html
+    from app.gui.models.modelcheck import verdict_parts
+
+    exp = read_experiment(ROOT / "resources" / "demo")
+    exp = replace(exp, probe=replace(exp.probe, face_mm=(30.0, 14.0)))
+    face = exp.probe.face_rect_mm()
+    assert face == (30.0, 60.0, 38.0, 52.0)
+    placed = {"name": "I", "center_mm": [29.15, 45.0, 88.8], "radius_mm": 6.4}
+    assert contact_gaps(placed, exp.specimen.size_mm, face) == pytest.approx((0.8, 0.85))
+    assert at_contact(placed, exp.specimen.size_mm, face)
+    # 8 mm deep (a blind phantom's hidden sphere), or a sphere's width beside the face: not at the contact
+    assert not at_contact({**placed, "center_mm": [45.0, 45.0, 82.0]}, exp.specimen.size_mm, face)
+    assert not at_contact({**placed, "center_mm": [22.0, 45.0, 88.8]}, exp.specimen.size_mm, face)
+
+    mis = {"chi2": 2386.2, "force_rms_N": 0.0195, "displacement_rms_px": 0.5}
+    incl = Candidate("inclusion", ("inclusion",), {"E_B_kPa": 17.97}, {}, mis, 4, 985.492, "a softer region",
+                     inclusion={"name": "I", "center_mm": [28.7, 45.0, 88.8], "radius_mm": 6.4}, material=True,
+                     identified={"parameters": {"E_B_kPa": 18.01, "E_A_kPa": 66.13, "E_I_kPa": 8.85}, "cost": {},
+                                 "seconds": 95.7, "inclusion": placed})
+    slip = Candidate("probe-slip", ("probe-slip",), {"E_B_kPa": 17.79}, {}, {**mis, "chi2": 2825.9}, 1, 677.699,
+                     "slides", material=True)
+    k = contact_of([incl, slip], "inclusion", exp)
+    assert k == {"effect": "probe-slip", "score": 677.699, "verdict_score": 985.492, "top_gap_mm": 0.8,
+                 "outside_mm": 0.85}
+    base = Candidate("", (), {"E_B_kPa": 18.0}, {}, {**mis, "chi2": 3509.5})
+    d = Diagnosis("x", base, [incl, slip], "inclusion", NoiseModel(0.02, 1481, 0.236, 318), 1.0, contact=k)
+    text = d.contact_advice()
+    assert text.startswith("the inclusion lies at the edge of the probe's face, its top 0.8 mm under the surface")
+    assert "probe-slip earns its parameters too (score +678 against +985)" in text
+    assert text.endswith("add probe-slip instead and compare the versions' errors")
+    assert f"contact: {text}" in d.lines() and d.to_json_dict()["contact"] == k
+    assert Diagnosis.from_state(json.loads(json.dumps(d.state()))).contact == k
+    parts = verdict_parts(d)
+    assert parts[3] == f"At the probe's contact: {text}."
+    assert "\u26a0 At the probe&#x27;s contact: the inclusion lies" in verdict_html(parts)
+    # the slip no finding, another verdict, or the sphere deeper: nothing to say
+    assert contact_of([incl, replace(slip, score=-5.0)], "inclusion", exp) is None
+    assert contact_of([incl, replace(slip, material=False)], "inclusion", exp) is None
+    assert contact_of([incl, slip], "probe-slip", exp) is None
+    deeper = replace(incl, identified={**incl.identified, "inclusion": {**placed, "center_mm": [29.15, 45.0, 84.0]}})
+    assert contact_of([deeper, slip], "inclusion", exp) is None
+    assert Diagnosis("x", base, [incl, slip], "inclusion", d.noise, 1.0).contact_advice() == ""

@@ -178,6 +178,29 @@ def inside_specimen(center_mm, radius_mm: float, size_mm) -> bool:
     return bool(np.all(c - radius_mm >= WALL_GAP_MM - 1e-9) and np.all(c + radius_mm <= size - WALL_GAP_MM + 1e-9))
 
 
+# a located sphere whose top lies this close under the probe's face, beside or under
+# it, changes how the face meets the tissue: a soft one there stood in for a hidden
+# probe slip (blind face-slip+52000, its top 0.8 mm under the face's edge; slip+31000
+# rerun; docs/model-check.md, "A fresh blind sweep")
+CONTACT_GAP_MM = 2.0
+
+
+def contact_gaps(inclusion: dict, size_mm, face_rect_mm) -> tuple[float, float]:
+    """(how far the sphere's top lies under the specimen's top, how far its
+    centre lies outside the probe face's footprint in plan: 0 under the face), mm."""
+    c, r = np.asarray(inclusion["center_mm"], float), float(inclusion["radius_mm"])
+    x0, x1, y0, y1 = face_rect_mm
+    outside = np.hypot(max(x0 - c[0], 0.0, c[0] - x1), max(y0 - c[1], 0.0, c[1] - y1))
+    return float(size_mm[2] - (c[2] + r)), float(outside)
+
+
+def at_contact(inclusion: dict, size_mm, face_rect_mm) -> bool:
+    """Whether the sphere reaches the probe's contact: its top within CONTACT_GAP_MM
+    of the surface and its footprint overlapping the face's."""
+    top, outside = contact_gaps(inclusion, size_mm, face_rect_mm)
+    return top <= CONTACT_GAP_MM and outside <= float(inclusion["radius_mm"])
+
+
 def plane_coordinates(center, lateral) -> tuple[np.ndarray, float, float]:
     """``center`` as ``base + s * lateral + z * (0, 0, 1)``: (base, s, z), with
     ``base`` the foot (z = 0) of the vertical plane along ``lateral`` through it.

@@ -475,11 +475,12 @@ def diagnosis_rows(diagnosis) -> list[dict]:
 
 def verdict_parts(diagnosis) -> tuple[str, str, str, str]:
     """The verdict in words, plain text: (head, the rest, the masked pair's sentence
-    or '', near-tie advice or ''), e.g. ('Verdict: viscoelastic', ', time-dependent
-    relaxation (Prony series). The force relaxes by 16% ...', '', ''). The panel
-    shows the head in bold, and the masked pair ("But ..." or "Or ...") and the near
-    tie each as a paragraph of their own; so does the report
-    (:func:`app.core.export.verdict_html`)."""
+    or '', the advice or ''), e.g. ('Verdict: viscoelastic', ', time-dependent
+    relaxation (Prony series). The force relaxes by 16% ...', '', ''). The advice:
+    "Near tie: ..." and "At the probe's contact: ..." (an inclusion verdict where a
+    slip fits too), each when there is one. The panel shows the head in bold, and
+    the masked pair ("But ..." or "Or ...") and the advice each as a paragraph of
+    their own; so does the report (:func:`app.core.export.verdict_html`)."""
     from app.core.effects import INFO
 
     d = diagnosis
@@ -491,8 +492,11 @@ def verdict_parts(diagnosis) -> tuple[str, str, str, str]:
              "this the new version).") if d.identified else ""
     confirmed = d.confirmation_text()
     confirmed = f" {confirmed[:1].upper()}{confirmed[1:]}." if confirmed else ""
+    tie, contact = d.tie_advice(), d.contact_advice()
+    advice = " ".join(x for x in (f"Near tie: {tie}." if tie else "",
+                                   f"At the probe's contact: {contact}." if contact else "") if x)
     return (f"Verdict: {d.verdict}", f", {INFO[d.verdict].title}. {ev}.{confirmed}{ident}", d.masked_sentence(),
-            d.tie_advice() or "")
+            advice)
 
 
 def report_data(snapshot) -> dict | None:
