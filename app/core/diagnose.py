@@ -983,9 +983,9 @@ class Diagnosis:
         where = "under the probe's face" if k["outside_mm"] <= 0 else "at the edge of the probe's face"
         return (f"the inclusion lies {where}, its top {k['top_gap_mm']:.1f} mm under the surface: a region there "
                 f"changes how the face meets the tissue, as a slipping probe does, and {k['effect']} earns its "
-                f"parameters too (score {k['score']:+,.0f} against {k['verdict_score']:+,.0f}). If the probe may "
-                f"have slipped (a wet or smooth face, a sloping surface), add {k['effect']} instead and compare "
-                f"the versions' errors")
+                f"parameters too (score {k['score']:+,.0f} against {k['verdict_score']:+,.0f}). A sphere placed "
+                f"where the misfit is fits it more closely than a slip can, so the scores do not settle it: if the "
+                f"probe may have slipped (a wet or smooth face, a sloping surface), add {k['effect']} instead")
 
     def tie_advice(self) -> str:
         """What to do about a near tie, in words ("" when there is none)."""
