@@ -685,6 +685,20 @@ def test_a_near_tie_is_shown_under_the_verdict(window, qtbot):
     assert "Verdict: probe-slip" in text and "Near tie: compressibility scores slightly better" in text
     assert "fitted together, Poisson&#x27;s ratio comes out at 0.480" in text and "verdict goes to probe-slip" in text
     assert panel.verdict_row() == 1
+    # an inclusion verdict at the probe's contact with the slip a finding too (blind face-slip+52000): its
+    # own paragraph, labelled, without a near tie
+    contact = {"effect": "probe-slip", "score": 677.699, "verdict_score": 985.492, "top_gap_mm": 0.8,
+               "outside_mm": 0.85}
+    cands = [Candidate("inclusion", ("inclusion",), {"E_B_kPa": 17.97}, {}, misfit, 4, 985.492, "a softer region",
+                       material=True),
+             Candidate("probe-slip", ("probe-slip",), {}, {}, misfit, 1, 677.699, "slides", material=True)]
+    d = Diagnosis("x", Candidate("", (), {}, {}, misfit), cands, "inclusion", NoiseModel(0.02, 10, 0.1, 10), 98.0,
+                  contact=contact)
+    panel._show(panel.model.apply((None, None, Snapshot(h, None, d, 0, "diagnose", "diagnosis: verdict inclusion"))))
+    text = panel.verdict_label.text()
+    assert "Verdict: inclusion" in text and "Near tie" not in text
+    assert "\u26a0 At the probe&#x27;s contact: the inclusion lies at the edge of the probe&#x27;s face" in text
+    assert "add probe-slip instead." in text
 
 
 def test_a_verdict_of_none_names_an_effect_that_came_close(window, qtbot):
