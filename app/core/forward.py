@@ -426,9 +426,9 @@ def line_training_set(moduli_kPa, index: int, factor: float = 3.0, n: int = 12) 
     ``moduli_kPa``'s, the others at theirs: the training set of a fit of that one
     modulus (the inclusion's at each trial sphere of its placement). A box of every
     ratio trains directions such a fit never uses: on a paper-size phantom with a
-    located sphere, 17 basis vectors instead of 27, and a trial 1.2-1.5 s shorter
-    (docs/model-check.md, "The placement's cost"). The fit still enriches the basis
-    wherever it goes."""
+    located sphere, 17 basis vectors instead of 27, and 3.6 s a trial instead of
+    6.2 s with the fit (docs/model-check.md, "The placement's cost"). The fit still
+    enriches the basis wherever it goes."""
     E = np.asarray(moduli_kPa, float)
     out = np.tile(E / E[0], (n, 1))
     out[:, index] *= np.exp(np.linspace(-np.log(factor), np.log(factor), n))
