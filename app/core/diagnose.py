@@ -1608,8 +1608,8 @@ def _sphere_search(problem: EffectProblem, params: dict, value, more, cancel, wh
     WALL_GAP_MM to the specimen's faces are not tried (as in the scan): on a
     blind paper-size phantom the search otherwise pushed a sphere 10 mm deep up
     into the probe's face, to fit the contact's misfit. ``more()`` says whether
-    another trial may be made. ``alone``: the one modulus ``value`` fits (its
-    trial models are trained on it alone: :func:`_trial_builder`)."""
+    another trial may be made. ``alone``: the region whose modulus alone ``value``
+    fits (its trial models are trained on it alone: :func:`_trial_builder`)."""
     from app.core.effects.inclusion import plane_coordinates, plane_point
 
     build = _trial_builder(problem, params, cancel, what, alone)
@@ -1671,8 +1671,8 @@ def _trial_builder(problem: EffectProblem, params: dict, cancel, what: str, alon
     at ``params``) with its inclusion moved to ``sphere`` on the same mesh (the
     tets whose centroid lies in it relabelled), or None for a sphere that holds
     no tet or reaches closer than WALL_GAP_MM to the specimen's faces. ``alone``:
-    the one modulus the trial's fits vary (its reduced model is trained on that
-    modulus alone), else every modulus."""
+    the region whose modulus alone the trial's fits vary (its reduced model is
+    trained on that modulus alone), else every modulus."""
     inc = problem.inclusion
     if inc is None or "inclusion" not in problem.effects:
         raise ElastoidError(f"{what} needs a model with an inclusion (add the inclusion effect first)")
@@ -1748,7 +1748,8 @@ def place_by_identification(problem: EffectProblem, params: dict, *, max_trials:
 
     made = problem.rm.factorize(problem.theta(params))  # held for the search's trials and the last fit
     try:
-        _sphere_search(problem, params, value, lambda: n[0] < max_trials, cancel, "placing the inclusion", own)
+        _sphere_search(problem, params, value, lambda: n[0] < max_trials, cancel, "placing the inclusion",
+                       problem.inclusion["name"])
         if best[0] is None:
             return None, None, n[0], None
         tp = _trial_builder(problem, params, cancel, "placing the inclusion")(best[0])

@@ -126,8 +126,8 @@ class EffectProblem(Problem):
         model's relative residual tolerance (ReducedModel's default unless given).
         ``operator``: the stiffness terms of ``mesh``, already assembled (e.g.
         :func:`app.core.fem.relabel` of a model on the same tets). ``near_alone``:
-        the one modulus the fits will vary (a name of ``parameter_names``): the
-        new reduced model is trained on that modulus alone about ``near_kPa``
+        the region whose modulus alone the fits will vary: the new reduced model
+        is trained on that modulus alone about ``near_kPa``
         (:func:`app.core.forward.line_training_set`; not with Poisson's ratio free)."""
         say = progress or (lambda s: None)
         effects = check(effects)
@@ -171,8 +171,7 @@ class EffectProblem(Problem):
                     if near is None:
                         rm.train(training_set(n))
                     elif near_alone is not None:
-                        names = [f"E_{r}_kPa" for r in mesh.region_names]
-                        rm.train(line_training_set(near, names.index(near_alone), near_factor))
+                        rm.train(line_training_set(near, mesh.region_names.index(near_alone), near_factor))
                     else:
                         rm.train(local_training_set(near, near_factor))
             say(f"reduced model: {rm.V.shape[1]} basis vectors")
