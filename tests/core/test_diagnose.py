@@ -1306,8 +1306,8 @@ def test_a_lower_poissons_ratio_hidden_by_a_sliding_bottom_is_fitted_with_it_and
     best single effect (margin 132.5, 2 ln N = 14.9 needed), neither yielding:
     compressibility is the verdict, and its evidence says the sliding bottom
     comes next."""
-    from app.core.diagnose import (RATIO_MASKED_MARGIN, Candidate, Diagnosis, NoiseModel, choose_verdict,
-                                   name_masked_ratio, ratio_masked, ratio_screen_applies)
+    from app.core.diagnose import (RATIO_MASKED_MARGIN, RATIO_PAIR_RMS_MAX, Candidate, Diagnosis, NoiseModel,
+                                   choose_verdict, name_masked_ratio, ratio_masked, ratio_screen_applies)
 
     def mis(chi2, excess_px):
         return {"chi2": chi2, "force_rms_N": 0.0198, "displacement_rms_px": 0.6, "force_excess_N": 0.0,
@@ -1345,14 +1345,21 @@ def test_a_lower_poissons_ratio_hidden_by_a_sliding_bottom_is_fitted_with_it_and
 
     ln_n = 7.448
     both = {"compressibility": "", "sliding-bottom": ""}
-    named, margin, needed = ratio_masked(899.0, 766.5, 2, ln_n, 0.4125, 0.49, both)
+    fell = 0.276 / 0.629  # 43002's pair lowered the displacement RMS to 0.276 px from the current model's 0.629
+    named, margin, needed = ratio_masked(899.0, 766.5, 2, ln_n, 0.4125, 0.49, both, fell)
     assert named and margin == pytest.approx(132.5) and needed == pytest.approx(RATIO_MASKED_MARGIN * 2 * ln_n)
     # the pair must pay for its parameters over the best single effect, its ratio must count, and neither may yield
-    assert not ratio_masked(766.5 + needed - 1.0, 766.5, 2, ln_n, 0.4125, 0.49, both)[0]
-    assert ratio_masked(766.5 + needed + 1.0, 766.5, 2, ln_n, 0.4125, 0.49, both)[0]
-    assert not ratio_masked(899.0, 766.5, 2, ln_n, 0.475, 0.49, both)[0]
+    assert not ratio_masked(766.5 + needed - 1.0, 766.5, 2, ln_n, 0.4125, 0.49, both, fell)[0]
+    assert ratio_masked(766.5 + needed + 1.0, 766.5, 2, ln_n, 0.4125, 0.49, both, fell)[0]
+    assert not ratio_masked(899.0, 766.5, 2, ln_n, 0.475, 0.49, both, fell)[0]
     assert not ratio_masked(899.0, 766.5, 2, ln_n, 0.4125, 0.49,
-                            {"compressibility": "", "sliding-bottom": "sliding-bottom raises chi2"})[0]
+                            {"compressibility": "", "sliding-bottom": "sliding-bottom raises chi2"}, fell)[0]
+    # and it must lower the displacement error: face-slip+52000 with the slip added (nothing else hidden) fitted a
+    # pair of nu 0.415 with a margin of 138.3 over the inclusion's +38.1, but its displacement RMS rose to 0.518 px
+    # from 0.489, a false compressibility
+    assert not ratio_masked(176.4, 38.1, 2, ln_n, 0.4149, 0.49, both, 0.518 / 0.489)[0]
+    assert not ratio_masked(899.0, 766.5, 2, ln_n, 0.4125, 0.49, both, RATIO_PAIR_RMS_MAX + 0.01)[0]
+    assert ratio_masked(899.0, 766.5, 2, ln_n, 0.4125, 0.49, both, RATIO_PAIR_RMS_MAX)[0]
 
     screen = {"effect": "sliding-bottom", "named": True, "nu": 0.4125,
               "parameters": {"E_B_kPa": 17.9802, "E_A_kPa": 61.8478, "nu": 0.4125}, "chi2": 1626.9, "score": 899.0,
@@ -1402,6 +1409,49 @@ def test_a_lower_poissons_ratio_hidden_by_a_sliding_bottom_is_fitted_with_it_and
     # without the screen's figures the same candidates make a near tie with the slip
     assert Diagnosis("x", base, out, "compressibility", NoiseModel(0.0209, 1481, 0.1136, 236), 1.0).rival == \
         "probe-slip"
+
+
+def test_a_pair_that_raises_the_displacement_error_is_not_named(monkeypatch):
+    """The masked-ratio screen on a model with a probe slip added, nothing else
+    hidden (face-slip+52000, diagnosed with ``--effects probe-slip``; figures from
+    its diagnosis): compressibility alone fitted nu 0.486 (+19, no finding), and
+    the pair with a sliding bottom scored +176 against the inclusion's +38, a
+    margin of 138 where 14.9 is needed, neither yielding. Its chi2 was 191 lower,
+    but its displacement RMS rose from 0.489 to 0.518 px, with E_B 12% high: the
+    screen reports the pair but does not name it. The joint fit is stubbed; the
+    screen's own arithmetic and the current model's RMS are what is tested."""
+    import types
+
+    import app.core.diagnose as dg
+
+    ln_n = 7.3
+    mis = {"chi2": 2862.4, "force_rms_N": 0.0195, "displacement_rms_px": 0.489}
+    base = dg.Candidate("", ("probe-slip",), {"E_B_kPa": 17.98, "E_A_kPa": 63.06}, {}, mis)
+    comp = dg.Candidate("compressibility", ("probe-slip", "compressibility"),
+                        {"E_B_kPa": 17.91, "E_A_kPa": 63.60, "nu": 0.4864}, {}, {**mis, "chi2": 2836.0}, 1, 19.1,
+                        negligible="within 0.02 of the model's")
+    slide = dg.Candidate("sliding-bottom", ("probe-slip", "sliding-bottom"), {"E_B_kPa": 18.30, "E_A_kPa": 82.14},
+                         {}, {**mis, "chi2": 6887.0}, 1, -4031.6)
+    incl = dg.Candidate("inclusion", ("probe-slip", "inclusion"), {"E_B_kPa": 17.98, "E_I_kPa": 0.18}, {},
+                        {**mis, "chi2": 2810.0}, 2, 38.1)
+
+    def pair(rms):
+        joint = dg.Candidate("compressibility+sliding-bottom", ("probe-slip", "compressibility", "sliding-bottom"),
+                             {"E_B_kPa": 20.151, "E_A_kPa": 57.389, "nu": 0.4149}, {},
+                             {**mis, "chi2": 2671.1, "displacement_rms_px": rms}, 2)
+        return types.SimpleNamespace(joint=joint, yields={"compressibility": "", "sliding-bottom": ""})
+
+    problem = types.SimpleNamespace(nu=0.49)
+    noise = types.SimpleNamespace(n=int(round(math.exp(ln_n))))
+    for rms, named in ((0.518, False), (0.276, True)):
+        monkeypatch.setattr(dg, "_fit_pair", lambda *a, rms=rms, **k: pair(rms))
+        said = []
+        screen = dg._masked_ratio([incl, comp, slide], base, problem, None, noise, ln_n, 50, said.append, None)
+        assert screen["named"] is named, screen
+        assert screen["score"] == pytest.approx(2862.4 - 2671.1 - 2 * ln_n, abs=0.1)
+        assert screen["best_single"] == "inclusion" and screen["margin"] > screen["needed"]
+        assert screen["current_displacement_rms_px"] == 0.489 and screen["displacement_rms_px"] == rms
+        assert f"displacement misfit 0.489 -> {rms:.3f} px" in said[-1]
 
 
 def test_history_is_immutable_and_round_trips():
