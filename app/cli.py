@@ -30,6 +30,28 @@ def _floats(text: str, n: int | None = None, what: str = "value") -> list[float]
     return vals
 
 
+def _given_inclusion(args, exp, effects) -> dict | None:
+    """The current model's inclusion at ``--inclusion-at cx,cy,cz,r`` (mm, the
+    specimen's frame), instead of locating it from the misfit; None without the
+    option. A diagnosis whose verdict is an inclusion prints the sphere the
+    identification placed it at in this form, so that the next step keeps it."""
+    if not args.inclusion_at:
+        return None
+    if "inclusion" not in effects:
+        raise ElastoidError("--inclusion-at places the inclusion effect's sphere: give --effects inclusion")
+    *centre, radius = _floats(args.inclusion_at, 4, what="--inclusion-at")
+    size = exp.specimen.size_mm
+    if not all(0.0 < c < s for c, s in zip(centre, size)):
+        raise ElastoidError(f"--inclusion-at: the centre ({', '.join(f'{c:g}' for c in centre)}) mm is outside the "
+                            f"specimen ({' x '.join(f'{s:g}' for s in size)} mm, from its corner at 0, 0, 0)")
+    if radius <= 0.0:
+        raise ElastoidError(f"--inclusion-at: the radius must be positive, got {radius:g} mm")
+    from app.core.effects.inclusion import new_region_name
+
+    return {"name": new_region_name([r.name for r in exp.specimen.regions]), "center_mm": centre,
+            "radius_mm": radius}
+
+
 def _float(text: str) -> float:
     try:
         return float(text)
@@ -198,6 +220,7 @@ def cmd_identify(args) -> int:
     starts = _floats(args.starts, what="--starts")
     check_starts(starts, "--starts")
     exp = read_experiment(args.experiment)
+    given = _given_inclusion(args, exp, effects)
     frames = frame_indices(exp, args.frames, "--frames") if args.frames else None
     _say_thinned(exp, frames, args.quiet)
     bar = TerminalProgress(not args.quiet, len(starts))
@@ -212,7 +235,8 @@ def cmd_identify(args) -> int:
         try:
             if "inclusion" in effects:  # located from the misfit of the model without it, as a diagnosis does
                 t_locate = time.perf_counter()
-                inclusion = locate_inclusion(exp, effects, mesh_settings=settings, progress=bar.message, **options)
+                inclusion = given or locate_inclusion(exp, effects, mesh_settings=settings, progress=bar.message,
+                                                      **options)
                 locate_seconds = round(time.perf_counter() - t_locate, 2)  # one figure for the JSON and the summary
                 if args.refine_inclusion:
                     from app.core.diagnose import refine_located_inclusion
@@ -257,7 +281,7 @@ def cmd_identify(args) -> int:
         payload["parameters"] = {**payload["parameters"], "center_mm": inclusion["center_mm"],
                                  "radius_mm": inclusion["radius_mm"]}
         # the fit's ``seconds`` leave out the locating (a fit, the tracking, the scan and the mesh)
-        payload["inclusion"] = {**inclusion, "locate_seconds": locate_seconds}
+        payload["inclusion"] = {**inclusion, "locate_seconds": locate_seconds, "given": given is not None}
         if args.refine_inclusion:
             located = refinement["located"]
             payload["inclusion"]["refinement"] = {
@@ -273,8 +297,9 @@ def cmd_identify(args) -> int:
             from app.core.effects.inclusion import also_fits_text, place_text
 
             located = refinement["located"] if args.refine_inclusion else inclusion
-            print(f"  inclusion {inclusion['name']} (not in the experiment, located from the misfit in "
-                  f"{locate_seconds:.1f} s before the fit): centre {place_text(located)}")
+            how = ("given by --inclusion-at" if given else
+                   f"located from the misfit in {locate_seconds:.1f} s before the fit")
+            print(f"  inclusion {inclusion['name']} (not in the experiment, {how}): centre {place_text(located)}")
             if located.get("also_fits"):
                 print(f"  the place is uncertain: {also_fits_text(located, exp.specimen.size_mm[2])}")
             elif located.get("rival_fitted"):
@@ -371,8 +396,8 @@ def cmd_diagnose(args) -> int:
     t0 = time.perf_counter()
     settings = _mesh_settings(args, exp)
     try:
-        inclusion = None
-        if "inclusion" in effects:  # the current model's inclusion, located as a diagnosis does
+        inclusion = _given_inclusion(args, exp, effects)
+        if "inclusion" in effects and inclusion is None:  # the current model's inclusion, located as a diagnosis does
             from app.core.diagnose import locate_inclusion
 
             inclusion = locate_inclusion(exp, effects, mesh_settings=settings, progress=bar.message)
@@ -394,6 +419,14 @@ def cmd_diagnose(args) -> int:
         if check is not None:
             for line in check.lines():
                 print(f"  {line}")
+        placed = None
+        if result.verdict == "inclusion":  # where the identification placed it, else where it was located
+            placed = (result.identified or {}).get("inclusion") or result.candidate("inclusion").inclusion
+        if placed:  # the next step keeps the sphere the verdict's moduli were identified with
+            at = ",".join(f"{v:g}" for v in (*placed["center_mm"], round(placed["radius_mm"], 2)))
+            added = ",".join([*effects, "inclusion"])
+            print(f"  next: add it with --effects {added} --inclusion-at {at}, for identify or the next diagnose "
+                  f"(without --inclusion-at the sphere is located from the misfit again, where the place can differ)")
     return 0 if written else 1
 
 
@@ -511,6 +544,9 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--starts", default="10,20,30,40,50,60", help="start moduli in kPa (the paper's by default)")
     ip.add_argument("--nu", type=_poisson, default=0.49, help="Poisson's ratio (default 0.49)")
     _add_mesh_options(ip)
+    ip.add_argument("--inclusion-at", metavar="CX,CY,CZ,R", default="",
+                    help="with --effects inclusion: the sphere's centre and radius in mm, instead of locating it "
+                         "(a diagnosis with an inclusion verdict prints where the identification placed it)")
     ip.add_argument("--refine-inclusion", action="store_true",
                     help="with --effects inclusion: after locating the sphere, search its place and size as the "
                          "Model check's 'Refine the inclusion's place' does, and fit with the refined sphere when "
@@ -525,6 +561,9 @@ def build_parser() -> argparse.ArgumentParser:
     dp.add_argument("experiment", type=Path, help="the experiment folder (docs/experiment-format.md)")
     dp.add_argument("--effects", default="", help="effects already in the current model (ids, comma-separated)")
     dp.add_argument("--candidates", default="", help="effects to try (default: every effect not in the model)")
+    dp.add_argument("--inclusion-at", metavar="CX,CY,CZ,R", default="",
+                    help="with --effects inclusion: the current model's sphere, centre and radius in mm, instead of "
+                         "locating it (as a diagnosis with an inclusion verdict prints it)")
     dp.add_argument("--json", metavar="FILE", help="write the result as JSON ('-' = standard output)")
     _add_mesh_options(dp)
     dp.add_argument("--mesh-check", action="store_true",

@@ -198,6 +198,76 @@ def test_diagnose_no_confirm_turns_the_finer_mesh_confirmation_off(monkeypatch):
     assert asked == [True, False]
 
 
+@pytest.mark.parametrize("command", ["identify", "diagnose"])
+@pytest.mark.parametrize("options,words", [
+    (["--inclusion-at", "58,45,83,6"], "give --effects inclusion"),
+    (["--effects", "inclusion", "--inclusion-at", "58,45,83"], "expected 4 numbers"),
+    (["--effects", "inclusion", "--inclusion-at", "58,45,100,6"], "the centre (58, 45, 100) mm is outside the "
+                                                                  "specimen (90 x 90 x 96 mm"),
+    (["--effects", "inclusion", "--inclusion-at", "58,45,83,0"], "the radius must be positive"),
+])
+def test_inclusion_at_refuses_a_sphere_it_cannot_place_before_the_run(capsys, monkeypatch, command, options, words):
+    """--inclusion-at gives the current model's sphere instead of locating it:
+    a malformed one is refused, naming the option, before anything is located,
+    meshed or fitted."""
+    import app.core.diagnose
+
+    def must_not_run(*a, **k):
+        raise AssertionError("the run started")
+
+    for name in ("diagnose", "locate_inclusion", "current_model"):
+        monkeypatch.setattr(app.core.diagnose, name, must_not_run)
+    assert main([command, str(ROOT / "resources" / "demo"), *options, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("elastoid: --inclusion-at") and words in err and "Traceback" not in err, err
+
+
+def test_diagnose_keeps_the_placed_inclusion_for_the_next_step(capsys, monkeypatch):
+    """A diagnosis whose verdict is an inclusion identifies it where the
+    identification places it; `diagnose --effects inclusion` without more
+    locates it from the misfit again. On incl-view+52000 (a 60 kPa sphere of
+    radius 6 at (58, 45, 84) mm) the verdict's sphere was placed at (58.4, 45,
+    83.4) r 5.79 with E_I 55.2 kPa, and the next diagnosis, located anew at
+    (57.5, 45, 81.6) r 5.4, identified E_I 74.3 kPa. So the report prints the
+    placed sphere as the next step's --inclusion-at, and that option hands it to
+    the diagnosis instead of the locator."""
+    import app.core.diagnose as dg
+
+    mis = {"chi2": 1000.0, "force_rms_N": 0.02, "displacement_rms_px": 0.86}
+    base = dg.Candidate("", (), {"E_B_kPa": 17.9, "E_A_kPa": 64.0}, {}, mis)
+    located = {"name": "I", "center_mm": [57.5, 45.0, 81.6], "radius_mm": 5.4}
+    incl = dg.Candidate("inclusion", ("inclusion",), {"E_B_kPa": 17.9, "E_A_kPa": 63.2, "E_I_kPa": 55.0}, {},
+                        {**mis, "displacement_rms_px": 0.49}, 3, 751.4, "a region deforms less",
+                        inclusion=located, material=True)
+    placed = {"name": "I", "center_mm": [58.4, 45.0, 83.4], "radius_mm": 5.791}
+    identified = {"parameters": {"E_B_kPa": 17.89, "E_A_kPa": 63.15, "E_I_kPa": 55.16}, "cost": {"total": -1.05},
+                  "seconds": 60.0, "inclusion": placed}
+    incl.identified = identified
+    asked = []
+
+    def diagnosed(exp, **k):
+        asked.append(k["inclusion"])
+        return dg.Diagnosis(str(exp.path), base, [incl], "inclusion", dg.NoiseModel(0.0191, 1481, 0.134, 240), 1.0)
+
+    def must_not_locate(*a, **k):
+        raise AssertionError("located again")
+
+    monkeypatch.setattr(dg, "diagnose", diagnosed)
+    monkeypatch.setattr(dg, "locate_inclusion", must_not_locate)
+    demo = str(ROOT / "resources" / "demo")
+    assert main(["diagnose", demo]) == 0
+    out = capsys.readouterr().out
+    assert ("  next: add it with --effects inclusion --inclusion-at 58.4,45,83.4,5.79, for identify or the next "
+            "diagnose") in out, out
+    # that step: the sphere given, not located; the current model's inclusion named as a new region would be
+    assert main(["diagnose", demo, "--effects", "inclusion", "--inclusion-at", "58.4,45,83.4,5.79"]) == 0
+    assert asked[-1] == {"name": "I", "center_mm": [58.4, 45.0, 83.4], "radius_mm": 5.79}
+    # where the identification did not move the sphere, the located one is printed
+    identified.pop("inclusion")
+    assert main(["diagnose", demo]) == 0
+    assert "--effects inclusion --inclusion-at 57.5,45,81.6,5.4," in capsys.readouterr().out
+
+
 def test_diagnose_refuses_a_malformed_memory_cap_before_the_run(capsys, monkeypatch):
     """ELASTOID_MEMORY_GB is read only when memory gets short, minutes into a
     diagnosis: a value that is not a number is refused before anything runs."""
