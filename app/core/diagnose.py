@@ -2831,6 +2831,10 @@ def _negligible(eff, problem: EffectProblem, cand: Candidate) -> str:
         return negligible(cand.parameters["nu"], problem.nu)
     if eff == "inclusion" and cand.inclusion:
         return _inclusion_negligible(cand.inclusion, cand.parameters, _replaced(problem, cand.inclusion))
+    if eff == "viscoelastic":
+        from app.core.effects.viscoelastic import negligible
+
+        return negligible(problem.log_t, problem.log_d, problem.effects)
     return ""
 
 

@@ -36,3 +36,42 @@ def test_holds_are_found():
     assert len(hs) == 1
     i0, i1 = hs[0]
     assert t[i0] == pytest.approx(5.0, abs=0.11) and t[i1] == pytest.approx(12.0, abs=0.11)
+
+
+def test_on_one_ramp_at_one_speed_relaxation_is_a_softening_with_travel():
+    """On a log that is one loading ramp at one speed the Prony force is a
+    function of the travel alone (the closed form below), so on top of the
+    large-deformation model, whose force-travel curve has its own error, a
+    fitted relaxation is no finding there; a hold, an unloading or a second
+    speed tells them apart."""
+    from app.core.effects.viscoelastic import negligible, one_speed_ramp
+
+    t = np.linspace(0.0, 14.8, 1481)
+    ramp = t.copy()  # 1 mm/s to 14.8 mm, as the paper-size phantoms
+    rng = np.random.default_rng(0)
+    assert one_speed_ramp(t, ramp)
+    assert one_speed_ramp(t, ramp + rng.normal(0.0, 0.002, t.size))  # an encoder's jitter
+    # the force is a function of travel alone at one speed: F(d) = k v (d/v - g1 tau (1 - exp(-d/(v tau))))
+    k, g1, tau = 0.7, 0.3, 2.0
+    force = prony_force(t, k * ramp, g1, tau)
+    closed = k * (ramp - g1 * tau * (ramp - tau * (1 - np.exp(-ramp / tau))) / tau)
+    assert force == pytest.approx(closed, abs=2e-3 * force.max())
+    hold_t = np.linspace(0.0, 20.8, 2081)
+    assert not one_speed_ramp(hold_t, np.minimum(hold_t, 14.8))  # a 6 s hold
+    unload = np.concatenate([ramp, 14.8 - ramp[1:]])
+    assert not one_speed_ramp(np.linspace(0.0, 29.6, unload.size), unload)
+    assert not one_speed_ramp(t, np.where(t < 7.4, t, 7.4 + 0.5 * (t - 7.4)))  # a second speed
+    assert not one_speed_ramp(t, np.zeros_like(t))
+    why = negligible(t, ramp, ("hyperelastic",))
+    assert why.startswith("on a log that is one loading ramp at one speed") and "record a hold" in why
+    assert negligible(t, ramp, ()) == ""  # the linear model's force is proportional to the travel: a relaxation shows
+    assert negligible(hold_t, np.minimum(hold_t, 14.8), ("hyperelastic",)) == ""
+    # the diagnosis asks it of the viscoelastic candidate, on the current model's log and effects
+    import types
+
+    from app.core.diagnose import Candidate, _negligible
+
+    cand = Candidate("viscoelastic", ("hyperelastic", "viscoelastic"), {"g1": 0.048, "tau1_s": 16.6}, {}, {})
+    current = types.SimpleNamespace(log_t=t, log_d=ramp, effects=("hyperelastic",))
+    assert _negligible("viscoelastic", current, cand) == why
+    assert _negligible("viscoelastic", types.SimpleNamespace(log_t=t, log_d=ramp, effects=()), cand) == ""
