@@ -228,9 +228,10 @@ def test_diagnose_keeps_the_placed_inclusion_for_the_next_step(capsys, monkeypat
     locates it from the misfit again. On incl-view+52000 (a 60 kPa sphere of
     radius 6 at (58, 45, 84) mm) the verdict's sphere was placed at (58.4, 45,
     83.4) r 5.79 with E_I 55.2 kPa, and the next diagnosis, located anew at
-    (57.5, 45, 81.6) r 5.4, identified E_I 74.3 kPa. So the report prints the
-    placed sphere as the next step's --inclusion-at, and that option hands it to
-    the diagnosis instead of the locator."""
+    (57.5, 45, 81.6) r 5.4, identified E_I 79.8 kPa (62.2 with the placed
+    sphere given). So the report prints the placed sphere as the next step's
+    --inclusion-at, and that option hands it to the diagnosis instead of the
+    locator."""
     import app.core.diagnose as dg
 
     mis = {"chi2": 1000.0, "force_rms_N": 0.02, "displacement_rms_px": 0.86}
