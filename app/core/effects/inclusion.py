@@ -181,7 +181,9 @@ def inside_specimen(center_mm, radius_mm: float, size_mm) -> bool:
 # a located sphere whose top lies this close under the probe's face, beside or under
 # it, changes how the face meets the tissue: a soft one there stood in for a hidden
 # probe slip (blind face-slip+52000, its top 0.8 mm under the face's edge; slip+31000
-# rerun; docs/model-check.md, "A fresh blind sweep")
+# rerun; docs/model-check.md, "A fresh blind sweep"); real soft spheres there scored
+# alike (blind 53001 and 53002, placed with their tops 0.6 and 0.8 mm under the
+# surface; "Second diagnoses with the right effect added"), so it is advice, not a rule
 CONTACT_GAP_MM = 2.0
 
 
