@@ -985,7 +985,10 @@ class Diagnosis:
                 f"changes how the face meets the tissue, as a slipping probe does, and {k['effect']} earns its "
                 f"parameters too (score {k['score']:+,.0f} against {k['verdict_score']:+,.0f}). A sphere placed "
                 f"where the misfit is fits it more closely than a slip can, so the scores do not settle it: if the "
-                f"probe may have slipped (a wet or smooth face, a sloping surface), add {k['effect']} instead")
+                f"probe may have slipped (a wet or smooth face, a sloping surface), add {k['effect']} instead. A mesh "
+                f"finer along the face's outline tells the two apart better: diagnose again with it at 0.5 mm (the "
+                f"mesh's outline size, --outline-edge-mm 0.5), which named the slip where a slip was and kept the "
+                f"sphere where a sphere was on two simulated phantoms")
 
     def tie_advice(self) -> str:
         """What to do about a near tie, in words ("" when there is none)."""

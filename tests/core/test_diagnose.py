@@ -2258,7 +2258,11 @@ def test_an_inclusion_verdict_at_the_probes_contact_says_a_slip_fits_too():
     text = d.contact_advice()
     assert text.startswith("the inclusion lies at the edge of the probe's face, its top 0.8 mm under the surface")
     assert "probe-slip earns its parameters too (score +678 against +985)" in text
-    assert "the scores do not settle it" in text and text.endswith("a sloping surface), add probe-slip instead")
+    assert "the scores do not settle it" in text and "a sloping surface), add probe-slip instead. " in text
+    # with the outline at 0.5 mm face-slip+52000 became probe-slip and a real sphere there (53001) stayed an inclusion
+    assert text.endswith("diagnose again with it at 0.5 mm (the mesh's outline size, --outline-edge-mm 0.5), which "
+                         "named the slip where a slip was and kept the sphere where a sphere was on two simulated "
+                         "phantoms")
     assert f"contact: {text}" in d.lines() and d.to_json_dict()["contact"] == k
     assert Diagnosis.from_state(json.loads(json.dumps(d.state()))).contact == k
     parts = verdict_parts(d)
