@@ -419,9 +419,7 @@ def cmd_diagnose(args) -> int:
         if check is not None:
             for line in check.lines():
                 print(f"  {line}")
-        placed = None
-        if result.verdict == "inclusion":  # where the identification placed it, else where it was located
-            placed = (result.identified or {}).get("inclusion") or result.candidate("inclusion").inclusion
+        placed = result.candidate("inclusion").sphere if result.verdict == "inclusion" else None
         if placed:  # the next step keeps the sphere the verdict's moduli were identified with
             at = ",".join(f"{v:g}" for v in (*placed["center_mm"], round(placed["radius_mm"], 2)))
             added = ",".join([*effects, "inclusion"])

@@ -492,6 +492,12 @@ class Candidate:
         """The effect was fitted (it has a score, and a model or one to rebuild)."""
         return (self.problem is not None or self.restored) and math.isfinite(self.score)
 
+    @property
+    def sphere(self) -> dict | None:
+        """The inclusion the identified moduli go with: where the identification placed
+        it (``identified["inclusion"]``), else where it was located; None without one."""
+        return (self.identified or {}).get("inclusion") or self.inclusion
+
     def drop_model(self) -> None:
         """Let go of the fitted model (its memory);
         the candidate stays fitted, and its model is rebuilt at its parameters if it is added."""
@@ -2066,7 +2072,7 @@ def contact_of(candidates: list, verdict: str, exp) -> dict | None:
         return None
     v = next(c for c in candidates if c.effect == verdict)
     slip = next((c for c in candidates if c.effect == "probe-slip"), None)
-    sphere = (v.identified or {}).get("inclusion") or v.inclusion
+    sphere = v.sphere
     if slip is None or slip.score <= 0 or slip.negligible or not slip.material or sphere is None:
         return None
     size, face = exp.specimen.size_mm, exp.probe.face_rect_mm()
